@@ -1,0 +1,43 @@
+"""Checks run before loading a checkpoint, so a wrong file fails with a clear error instead of a shape mismatch."""
+
+from __future__ import annotations
+
+import io
+import json
+import pathlib
+import zipfile
+
+from stable_baselines3.common.save_util import open_path
+
+
+def read_checkpoint_data(path: str | pathlib.Path | io.BufferedIOBase) -> dict:
+    """The JSON ``data`` entry of an SB3 zip checkpoint, without deserialising its objects or tensors."""
+    file = open_path(path, "r", verbose=0, suffix="zip")
+    try:
+        with zipfile.ZipFile(file) as archive:
+            data = json.loads(archive.read("data").decode())
+    finally:
+        if isinstance(file, io.BufferedIOBase) and not isinstance(path, io.BufferedIOBase):
+            file.close()
+        else:
+            file.seek(0)
+    return data
+
+
+def check_checkpoint(path, algorithm_name: str, n_tasks: int | None) -> None:
+    """Raise ValueError when ``path`` was saved by another algorithm or for another task count.
+
+    :param path: checkpoint path or file object.
+    :param algorithm_name: class name of the algorithm loading it.
+    :param n_tasks: task count of the env it is loaded with, or None when loaded without an env.
+    """
+    data = read_checkpoint_data(path)
+    saved_name = data.get("algorithm_name")
+    if saved_name != algorithm_name:
+        raise ValueError(
+            f"This checkpoint was saved by {saved_name or 'another algorithm (not sb3_mtte)'}, "
+            f"not {algorithm_name}: load it with that class."
+        )
+    saved_tasks = data.get("n_tasks")
+    if n_tasks is not None and saved_tasks != n_tasks:
+        raise ValueError(f"This checkpoint was trained on {saved_tasks} tasks; the env given has {n_tasks} tasks.")

@@ -1,0 +1,34 @@
+"""Tanh-squashed diagonal Gaussian with explicit reparameterisation noise (same maths as SB3's SAC actor)."""
+
+from __future__ import annotations
+
+import math
+
+import torch as th
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+_TANH_EPS = 1e-6  # the epsilon SB3's TanhBijector uses in log(1 - tanh(x)^2 + eps)
+
+
+def split_mean_log_std(params: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
+    """Split a ``(..., 2A)`` network output into mean and clamped log-std."""
+    mean, log_std = params.chunk(2, dim=-1)
+    return mean, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
+
+
+def squashed_gaussian_sample(
+    mean: th.Tensor, log_std: th.Tensor, noise: th.Tensor | None = None
+) -> tuple[th.Tensor, th.Tensor]:
+    """Reparameterised sample ``a = tanh(mean + std * noise)`` and its log-probability.
+
+    Passing the same ``noise`` twice gives common random numbers (used to compare two policies fairly).
+
+    :return: actions ``(..., A)`` and log-probabilities ``(...,)``.
+    """
+    if noise is None:
+        noise = th.randn_like(mean)
+    pre_tanh = mean + log_std.exp() * noise
+    action = th.tanh(pre_tanh)
+    gaussian_log_prob = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
+    log_prob = (gaussian_log_prob - th.log(1.0 - action.pow(2) + _TANH_EPS)).sum(dim=-1)
+    return action, log_prob

@@ -1,0 +1,86 @@
+"""Small helpers shared by every multi-task algorithm: task bookkeeping, log keys, loss checks."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.vec_env import VecEnv
+
+
+def short_task_name(name: str) -> str:
+    """``"button-press-topdown-v3"`` -> ``"button-press-topdown"``."""
+    return name[:-3] if name.endswith(("-v2", "-v3")) else name
+
+
+def task_log_key(prefix: str, index: int, name: str | None = None) -> str:
+    """Logger key for a per-task scalar, unique within its first 36 characters even for MT50.
+
+    The task index comes right after the prefix, so SB3's 36-character stdout truncation never makes
+    two keys collide: ``task_log_key("eval/success", 3, "door-open-v3") == "eval/success/03_door-open"``.
+    """
+    suffix = f"{index:02d}" if name is None else f"{index:02d}_{short_task_name(name)}"
+    return f"{prefix}/{suffix}"
+
+
+def task_ids_from_obs(obs: th.Tensor, n_tasks: int) -> th.Tensor:
+    """Task index of each row, read from the one-hot that ends every observation."""
+    return obs[..., -n_tasks:].argmax(dim=-1)
+
+
+def split_obs(obs: th.Tensor, n_tasks: int) -> tuple[th.Tensor, th.Tensor]:
+    """``(state, one_hot)`` halves of an observation laid out as state followed by the N-dim one-hot."""
+    return obs[..., :-n_tasks], obs[..., -n_tasks:]
+
+
+def get_task_names(env: VecEnv) -> list[str]:
+    """Task names of a multi-task VecEnv (sub-env i is task i); generic names when the env has none."""
+    try:
+        return list(env.get_attr("task_name"))
+    except AttributeError:
+        return [f"task{i}" for i in range(env.num_envs)]
+
+
+def check_multitask_env(env: VecEnv, n_tasks: int | None = None) -> int:
+    """Validate the multi-task layout and return the task count N.
+
+    The layout is: one sub-env per task, a flat Box observation ending with the N-dim one-hot, and
+    sub-env i observing one-hot e_i after reset.
+
+    :param env: the vectorised env.
+    :param n_tasks: the task count the caller expects (from a checkpoint, say), or None.
+    :raises ValueError: with what is wrong, when the env does not follow the layout.
+    """
+    n_envs = env.num_envs
+    obs_space = env.observation_space
+    if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
+        raise ValueError(f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}.")
+    if n_tasks is not None and n_envs != n_tasks:
+        raise ValueError(f"Expected an env with one sub-env per task ({n_tasks} tasks), got {n_envs} sub-envs.")
+    if obs_space.shape[0] <= n_envs:
+        raise ValueError(
+            f"Observation of size {obs_space.shape[0]} cannot hold a state and a {n_envs}-dim one-hot: "
+            "the env must have one sub-env per task and append the task one-hot to the state."
+        )
+    if n_envs < 2:
+        raise ValueError("A multi-task env needs at least 2 tasks (one sub-env per task); got 1 sub-env.")
+    return n_envs
+
+
+def check_one_hot(obs: np.ndarray, n_tasks: int) -> None:
+    """Check that row i of a task-major batch of observations (one per sub-env) ends with one-hot e_i.
+
+    :raises ValueError: when the one-hot is missing or does not match the sub-env order.
+    """
+    tail = np.asarray(obs)[:, -n_tasks:]
+    if not np.array_equal(tail, np.eye(n_tasks, dtype=tail.dtype)):
+        raise ValueError(
+            f"Sub-env i must observe the one-hot e_i in its last {n_tasks} entries (one sub-env per task, "
+            "one-hot appended); the observations' last entries are not an identity matrix."
+        )
+
+
+def check_finite(name: str, value: th.Tensor) -> None:
+    """Stop training with an error naming the loss when it is NaN or infinite."""
+    if not bool(th.isfinite(value).all()):
+        raise FloatingPointError(f"The {name} is not finite ({value.detach().cpu().numpy()}); training stopped.")

@@ -1,0 +1,346 @@
+"""MTSAC: multi-task SAC with per-task entropy coefficients and (clipped) per-task soft-Q losses.
+
+The Table-1 baselines of the paper are MTSAC with a policy alias (SAC-MT, SAC-MT-MH, SAC-soft-modular,
+SAC-Ind) and, for SAC-MT-with-clip, ``q_loss_clip=2000``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+from stable_baselines3.common.utils import polyak_update
+from stable_baselines3.common.vec_env import VecEnv
+
+from sb3_mtte.common.buffers import MultiTaskReplayBuffer
+from sb3_mtte.common.checkpoints import check_checkpoint
+from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss, per_task_entropy_loss
+from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
+from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
+
+SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
+
+
+def check_q_loss_clip(q_loss_clip: float | None) -> None:
+    if q_loss_clip is not None and not (q_loss_clip > 0 and math.isfinite(q_loss_clip)):
+        raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
+
+
+class MTSAC(OffPolicyAlgorithm):
+    """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
+
+    Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task.
+
+    :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
+        (SAC-soft-modular) or ``"IndependentPolicy"`` (SAC-Ind), or a policy class.
+    :param env: multi-task VecEnv, sub-env i is task i (see :func:`sb3_mtte.make_mt_env`).
+    :param learning_rate: Adam learning rate (delta), a float or schedule.
+    :param buffer_size: replay capacity in transitions over all tasks.
+    :param learning_starts: transitions (over all tasks) collected with random actions before learning.
+    :param batch_size: L, transitions per task in every mini-batch (total N * L).
+    :param tau: Polyak coefficient of the target critics.
+    :param gamma: discount factor.
+    :param train_freq: update every ``train_freq`` vector steps (one env step of every task).
+    :param gradient_steps: gradient updates per ``train_freq``.
+    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned per-task beta_i) or a fixed float.
+    :param target_entropy: target entropy H-bar, ``"auto"`` = -dim(A).
+    :param target_update_interval: gradient steps between target updates.
+    :param critic_arch: ``"per_task"`` (one twin Q per task, the paper's setting) or ``"shared"``.
+    :param q_loss_clip: V_clip of Eq. 16; None = plain soft Bellman loss (Eq. 15).
+    :param action_noise: optional exploration noise.
+    :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
+    :param replay_buffer_kwargs: its keyword arguments.
+    :param policy_kwargs: policy keyword arguments (``net_arch``, ``actor_kwargs``, ...).
+    :param stats_window_size: episodes averaged in rollout logs.
+    :param tensorboard_log: tensorboard log folder.
+    :param verbose: 0, 1 or 2.
+    :param seed: random seed.
+    :param device: ``"auto"`` (CUDA when present), ``"cpu"`` or ``"cuda"``.
+    :param _init_setup_model: whether to build the networks now.
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        "MlpPolicy": MTSACPolicy,
+        "MultiHeadPolicy": MultiHeadPolicy,
+        "SoftModularPolicy": SoftModularPolicy,
+        "IndependentPolicy": IndependentPolicy,
+    }
+    policy: MTSACPolicy
+    replay_buffer: MultiTaskReplayBuffer | None
+
+    def __init__(
+        self,
+        policy: str | type[MTSACPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 5_000,
+        batch_size: int = 128,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        target_update_interval: int = 1,
+        critic_arch: str = "per_task",
+        q_loss_clip: float | None = None,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        check_q_loss_clip(q_loss_clip)
+        super().__init__(
+            policy,
+            env,  # type: ignore[arg-type]
+            learning_rate,
+            buffer_size,
+            learning_starts,
+            batch_size,
+            tau,
+            gamma,
+            train_freq,
+            gradient_steps,
+            action_noise,
+            replay_buffer_class=replay_buffer_class or MultiTaskReplayBuffer,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            policy_kwargs=policy_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            verbose=verbose,
+            device=device,
+            seed=seed,
+            supported_action_spaces=(spaces.Box,),
+            support_multi_env=True,
+            sde_support=False,
+        )
+        self.algorithm_name = type(self).__name__
+        self.n_tasks = check_multitask_env(self.env) if self.env is not None else 0
+        self.task_names: list[str] = get_task_names(self.env) if self.env is not None else []
+        self.critic_arch = critic_arch
+        self.q_loss_clip = q_loss_clip
+        self.ent_coef = ent_coef
+        self.target_entropy = target_entropy
+        self.target_update_interval = target_update_interval
+        self.log_ent_coef: th.Tensor | None = None
+        self.ent_coef_optimizer: th.optim.Optimizer | None = None
+        if _init_setup_model:
+            self._setup_model()
+
+    # ----------------------------------------------------------------------------------------------- set-up
+    def _setup_model(self) -> None:
+        self._setup_lr_schedule()
+        self.set_random_seed(self.seed)
+        self.policy = self.policy_class(
+            self.observation_space,
+            self.action_space,
+            self.lr_schedule,
+            n_tasks=self.n_tasks,
+            critic_arch=self.critic_arch,
+            **self.policy_kwargs,
+        ).to(self.device)
+        self._convert_train_freq()
+        self._create_aliases()
+        if self.env is not None:
+            self._setup_replay_buffer()
+        self._setup_entropy_coef()
+
+    def _setup_replay_buffer(self) -> None:
+        """Build the replay buffer (lazily, so ``load(path, env=None)`` allocates none)."""
+        if self.replay_buffer is None:
+            self.replay_buffer = self.replay_buffer_class(
+                self.buffer_size,
+                self.observation_space,
+                self.action_space,
+                device=self.device,
+                n_envs=self.n_tasks,
+                optimize_memory_usage=self.optimize_memory_usage,
+                **self.replay_buffer_kwargs,
+            )
+
+    def _setup_entropy_coef(self) -> None:
+        if self.target_entropy == "auto":
+            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
+        self.target_entropy = float(self.target_entropy)
+        if isinstance(self.ent_coef, str) and self.ent_coef.startswith("auto"):
+            init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
+            if init_value <= 0:
+                raise ValueError("The initial value of ent_coef must be greater than 0.")
+            self.log_ent_coef = th.full((self.n_tasks,), math.log(init_value), device=self.device, requires_grad=True)
+            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
+        else:
+            self.ent_coef_tensor = th.full((self.n_tasks,), float(self.ent_coef), device=self.device)
+
+    def _create_aliases(self) -> None:
+        self.actor = self.policy.actor
+        self.critic = self.policy.critic
+        self.critic_target = self.policy.critic_target
+
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ):
+        self._setup_replay_buffer()
+        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+        check_one_hot(self._last_obs, self.n_tasks)  # type: ignore[arg-type]
+        if not hasattr(self, "_task_success") or reset_num_timesteps:
+            self._task_success = [deque(maxlen=self._stats_window_size) for _ in range(self.n_tasks)]
+        return result
+
+    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        if isinstance(env, VecEnv):
+            check_multitask_env(env, self.n_tasks)
+        super().set_env(env, force_reset)
+        self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
+
+    @property
+    def entropy_coefficients(self) -> th.Tensor:
+        """Current per-task beta_i, shape (N,)."""
+        return self.log_ent_coef.detach().exp() if self.log_ent_coef is not None else self.ent_coef_tensor
+
+    # --------------------------------------------------------------------------------------------- training
+    def task_weights_for_policy(self) -> th.Tensor:
+        """Weights of the per-task policy losses (Eq. 9); uniform 1/N for plain MTSAC."""
+        return th.full((self.n_tasks,), 1.0 / self.n_tasks, device=self.device)
+
+    def train(self, gradient_steps: int, batch_size: int = 128) -> None:
+        self.policy.set_training_mode(True)
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        if self.ent_coef_optimizer is not None:
+            optimizers.append(self.ent_coef_optimizer)
+        self._update_learning_rate(optimizers)
+
+        stats: dict[str, list[th.Tensor]] = {}
+        for gradient_step in range(gradient_steps):
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            for key, value in self._sac_update(replay_data).items():
+                stats.setdefault(key, []).append(value)
+            if gradient_step % self.target_update_interval == 0:
+                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        self._n_updates += gradient_steps
+        self._record_train_stats({key: th.stack(values).mean(0).cpu().numpy() for key, values in stats.items()})
+
+    def _sac_update(self, replay_data) -> dict[str, th.Tensor]:
+        """One SAC update on a task-major batch: beta_i, then critics (Eq. 15-16), then actor (Eq. 9)."""
+        n = self.n_tasks
+        actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
+        log_prob = log_prob.view(n, -1)
+        stats: dict[str, th.Tensor] = {}
+
+        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
+            ent_coef = self.log_ent_coef.detach().exp()
+            ent_coef_loss = per_task_entropy_loss(self.log_ent_coef, log_prob.detach(), self.target_entropy).sum()
+            check_finite("entropy coefficient loss", ent_coef_loss)
+            self.ent_coef_optimizer.zero_grad()
+            ent_coef_loss.backward()
+            self.ent_coef_optimizer.step()
+            stats["ent_coef_loss"] = ent_coef_loss.detach()
+        else:
+            ent_coef = self.ent_coef_tensor
+        stats["ent_coef"] = ent_coef
+
+        with th.no_grad():
+            next_actions, next_log_prob = self.policy.action_log_prob(replay_data.next_observations)
+            next_q = self.critic_target(replay_data.next_observations, next_actions).min(dim=0).values
+            next_q = next_q - ent_coef[:, None] * next_log_prob.view(n, -1)
+            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
+            target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.reshape(-1, 1)
+
+        current_q = self.critic(replay_data.observations, replay_data.actions)
+        critic_losses = clipped_soft_q_loss(current_q, target_q.view(n, -1), self.q_loss_clip)
+        critic_loss = critic_losses.sum()
+        check_finite("critic loss", critic_loss)
+        self.critic.optimizer.zero_grad()
+        critic_loss.backward()
+        self.critic.optimizer.step()
+        stats["critic_loss"] = critic_losses.detach()
+
+        min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
+        actor_losses = per_task_actor_loss(log_prob, min_q_pi, ent_coef)
+        actor_loss = (self.task_weights_for_policy() * actor_losses).sum()
+        check_finite("actor loss", actor_loss)
+        self.actor.optimizer.zero_grad()
+        actor_loss.backward()
+        self.actor.optimizer.step()
+        stats["actor_loss"] = actor_loss.detach()
+        return stats
+
+    def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/actor_loss", float(stats["actor_loss"]))
+        self.logger.record("train/critic_loss", float(stats["critic_loss"].mean()))
+        self.logger.record("train/ent_coef", float(stats["ent_coef"].mean()))
+        if "ent_coef_loss" in stats:
+            self.logger.record("train/ent_coef_loss", float(stats["ent_coef_loss"]))
+        for i in range(self.n_tasks):
+            self.logger.record(task_log_key("train/critic_loss", i, self._task_name(i)), float(stats["critic_loss"][i]))
+
+    def _task_name(self, index: int) -> str | None:
+        return self.task_names[index] if index < len(self.task_names) else None
+
+    # ---------------------------------------------------------------------------------------------- logging
+    def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
+        super()._update_info_buffer(infos, dones)
+        if dones is None:
+            return
+        for index in np.flatnonzero(dones):
+            success = infos[index].get("is_success")
+            if success is not None:
+                self._task_success[infos[index].get("task_index", index)].append(float(success))
+
+    def dump_logs(self) -> None:
+        for i, successes in enumerate(getattr(self, "_task_success", [])):
+            if successes:
+                self.logger.record(task_log_key("rollout/success", i, self._task_name(i)), float(np.mean(successes)))
+        super().dump_logs()
+
+    # ------------------------------------------------------------------------------------------ save / load
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "actor", "critic", "critic_target", "_task_success"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
+        if self.ent_coef_optimizer is not None:
+            return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
+        return state_dicts, ["ent_coef_tensor"]
+
+    @classmethod
+    def load(cls, path, env: GymEnv | None = None, device: th.device | str = "auto", **kwargs):  # type: ignore[override]
+        """Load a model saved by this class; a checkpoint of another algorithm or task count raises ValueError.
+
+        ``env=None`` is enough for prediction and evaluation: no replay buffer is allocated.
+        """
+        n_tasks = env.num_envs if isinstance(env, VecEnv) else None
+        check_checkpoint(path, cls.__name__, n_tasks)
+        return super().load(path, env=env, device=device, **kwargs)
+
+    def learn(
+        self: SelfMTSAC,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "MTSAC",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMTSAC:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)

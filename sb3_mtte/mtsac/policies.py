@@ -1,0 +1,291 @@
+"""Policies of the MTSAC family (the paper's Table-1 baselines).
+
+- ``MlpPolicy`` (SAC-MT): one actor on state + one-hot.
+- ``MultiHeadPolicy`` (SAC-MT-MH): shared trunk on state + one-hot, one output head per task.
+- ``SoftModularPolicy`` (SAC-soft-modular, Yang et al. 2020): a routing network over layers of modules.
+- ``IndependentPolicy`` (SAC-Ind): N independent actors on the state alone.
+
+Every actor maps observations (state followed by the N-dim one-hot) to a tanh-squashed Gaussian. Training
+batches are task-major (``task_ids=None``: L rows of task 0, then task 1, ...) so per-task parts run as one
+batched matmul; acting reads the task of each row from its one-hot and gathers the matching weights.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from torch import nn
+
+from sb3_mtte.common.critics import MultiTaskCritic
+from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
+from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP, mlp
+from sb3_mtte.common.utils import task_ids_from_obs
+
+DEFAULT_NET_ARCH = [400, 400]
+
+
+class MultiTaskActor(nn.Module):
+    """Base class: subclasses implement :meth:`dist_params`.
+
+    :param state_dim: size of the state part of the observation.
+    :param action_dim: size of the action.
+    :param n_tasks: number of tasks N.
+    :param net_arch: hidden layer widths.
+    :param activation_fn: activation function.
+    """
+
+    def __init__(
+        self, state_dim: int, action_dim: int, n_tasks: int, net_arch: list[int], activation_fn: type[nn.Module]
+    ) -> None:
+        super().__init__()
+        self.state_dim, self.action_dim, self.n_tasks = state_dim, action_dim, n_tasks
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        """Raw ``(B, 2A)`` output (mean and log-std). ``task_ids=None`` means a task-major batch."""
+        raise NotImplementedError
+
+    def action_log_prob(
+        self, obs: th.Tensor, task_ids: th.Tensor | None = None, noise: th.Tensor | None = None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions ``(B, A)`` and log-probabilities ``(B,)``."""
+        mean, log_std = split_mean_log_std(self.dist_params(obs, task_ids))
+        return squashed_gaussian_sample(mean, log_std, noise)
+
+    def forward(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Actions for observations in any order (the task of each row is read from its one-hot)."""
+        params = self.dist_params(obs, task_ids_from_obs(obs, self.n_tasks))
+        mean, log_std = split_mean_log_std(params)
+        if deterministic:
+            return th.tanh(mean)
+        return squashed_gaussian_sample(mean, log_std)[0]
+
+    def _task_major(self, x: th.Tensor) -> th.Tensor:
+        return x.view(self.n_tasks, -1, x.shape[-1])
+
+
+class SharedActor(MultiTaskActor):
+    """SAC-MT: one MLP on state + one-hot."""
+
+    def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
+        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        self.net = mlp(state_dim + n_tasks, net_arch, 2 * action_dim, activation_fn)
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        return self.net(obs)
+
+
+class MultiHeadActor(MultiTaskActor):
+    """SAC-MT-MH: shared trunk on state + one-hot, one linear output head per task (batched)."""
+
+    def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
+        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        self.trunk = mlp(state_dim + n_tasks, net_arch, 0, activation_fn)
+        self.heads = EnsembleLinear(n_tasks, net_arch[-1], 2 * action_dim)
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        latent = self.trunk(obs)
+        if task_ids is None:
+            return self.heads(self._task_major(latent)).reshape(obs.shape[0], -1)
+        return self.heads.forward_gather(latent, task_ids)
+
+
+class IndependentActor(MultiTaskActor):
+    """SAC-Ind: N independent MLPs on the state alone (batched as one ensemble)."""
+
+    def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
+        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        self.nets = EnsembleMLP(n_tasks, state_dim, net_arch, 2 * action_dim, activation_fn)
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        state = obs[:, : self.state_dim]
+        if task_ids is None:
+            return self.nets(self._task_major(state)).reshape(obs.shape[0], -1)
+        return self.nets.forward_gather(state, task_ids)
+
+
+class SoftModularActor(MultiTaskActor):
+    """Soft modularization (Yang et al., 2020), batched over modules.
+
+    A state encoder f(s) and a task embedding g(one-hot) of the same width D feed a routing network that, per
+    sample, outputs for every layer l >= 1 a matrix of soft weights p^l (m x m, softmax over the source module):
+
+        p^1 = W_d^1 ReLU(f(s) * g),   p^{l+1} = W_d^{l+1} ReLU(W_u^l p^l * f(s) * g).
+
+    The base network has ``n_layers`` layers of ``n_modules`` modules (one linear layer + ReLU each). Every module
+    of layer 0 reads f(s); module j of layer l+1 reads sum_i p^l[j, i] * out_i^l; the output head reads the sum
+    of the last layer's module outputs. Modules of a layer are one batched ensemble (one bmm), routing is an
+    einsum: no loop over modules or tasks.
+
+    Deviation from the original: module width 128, 4 layers x 4 modules by default, and the state encoder f(s)
+    is ``net_arch`` (2 x 400), so D = ``net_arch[-1]``.
+
+    :param n_layers: number of module layers L.
+    :param n_modules: modules per layer m.
+    :param module_size: width d of each module.
+    """
+
+    def __init__(
+        self,
+        state_dim,
+        action_dim,
+        n_tasks,
+        net_arch,
+        activation_fn,
+        n_layers: int = 4,
+        n_modules: int = 4,
+        module_size: int = 128,
+    ) -> None:
+        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        if n_layers < 2 or n_modules < 1:
+            raise ValueError("SoftModularPolicy needs n_layers >= 2 and n_modules >= 1.")
+        self.n_layers, self.n_modules = n_layers, n_modules
+        self.state_encoder = mlp(state_dim, net_arch, 0, activation_fn)  # f(s)
+        self.task_encoder = nn.Linear(n_tasks, net_arch[-1])  # g(one-hot)
+        self.route_down = nn.ModuleList(nn.Linear(net_arch[-1], n_modules * n_modules) for _ in range(n_layers - 1))
+        self.route_up = nn.ModuleList(nn.Linear(n_modules * n_modules, net_arch[-1]) for _ in range(n_layers - 2))
+        sizes = [net_arch[-1]] + [module_size] * n_layers
+        self.modules_per_layer = nn.ModuleList(EnsembleLinear(n_modules, sizes[k], sizes[k + 1]) for k in range(n_layers))
+        self.head = nn.Linear(module_size, 2 * action_dim)
+        self.activation = activation_fn()
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        state, one_hot = obs[:, : self.state_dim], obs[:, self.state_dim :]
+        features = self.state_encoder(state)
+        context = features * self.task_encoder(one_hot)
+        m = self.n_modules
+        logits = self.route_down[0](th.relu(context))
+        x = self.activation(self.modules_per_layer[0](features.unsqueeze(0).expand(m, -1, -1)))  # (m, B, d)
+        for layer in range(1, self.n_layers):
+            weights = logits.view(-1, m, m).softmax(dim=-1)  # (B, target j, source i)
+            x = th.einsum("bji,ibd->jbd", weights, x)
+            x = self.activation(self.modules_per_layer[layer](x))
+            if layer < self.n_layers - 1:
+                logits = self.route_down[layer](th.relu(self.route_up[layer - 1](logits) * context))
+        return self.head(x.sum(dim=0))
+
+
+class MTSACPolicy(BasePolicy):
+    """Actor + twin critics (+ targets) for the MTSAC family. Default alias ``"MlpPolicy"`` (SAC-MT).
+
+    :param observation_space: flat Box: state followed by the N-dim one-hot.
+    :param action_space: Box action space.
+    :param lr_schedule: learning-rate schedule.
+    :param n_tasks: number of tasks N (set by the algorithm).
+    :param net_arch: hidden widths, a list for both actor and critic or ``dict(pi=[...], qf=[...])``.
+    :param activation_fn: activation function.
+    :param critic_arch: ``"per_task"`` (one twin Q per task, default) or ``"shared"``.
+    :param n_critics: number of twin Q-networks.
+    :param actor_kwargs: extra keyword arguments of the actor class (e.g. soft-modular depth).
+    :param optimizer_class: optimizer class (Adam, fused where supported, by default).
+    :param optimizer_kwargs: optimizer keyword arguments.
+    """
+
+    actor_class: type[MultiTaskActor] = SharedActor
+
+    def __init__(
+        self,
+        observation_space: spaces.Box,
+        action_space: spaces.Box,
+        lr_schedule: Schedule,
+        n_tasks: int = 1,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        critic_arch: str = "per_task",
+        n_critics: int = 2,
+        actor_kwargs: dict[str, Any] | None = None,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        if optimizer_kwargs is None:
+            optimizer_kwargs = {"fused": True} if optimizer_class in (th.optim.Adam, th.optim.AdamW) else {}
+        super().__init__(
+            observation_space,
+            action_space,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            squash_output=True,
+            normalize_images=False,
+        )
+        if net_arch is None:
+            net_arch = DEFAULT_NET_ARCH
+        self.net_arch = net_arch
+        self.pi_arch, self.qf_arch = (net_arch["pi"], net_arch["qf"]) if isinstance(net_arch, dict) else (net_arch, net_arch)
+        self.n_tasks, self.activation_fn = n_tasks, activation_fn
+        self.critic_arch, self.n_critics = critic_arch, n_critics
+        self.actor_kwargs = actor_kwargs or {}
+        self.state_dim = observation_space.shape[0] - n_tasks
+        self.action_dim = action_space.shape[0]
+        self._build(lr_schedule)
+
+    def _build(self, lr_schedule: Schedule) -> None:
+        self.actor = self.make_actor()
+        self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.critic = self.make_critic()
+        self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
+        self.critic_target = self.make_critic()
+        self.critic_target.load_state_dict(self.critic.state_dict())
+        self.critic_target.requires_grad_(False)
+        self.critic_target.train(False)
+
+    def make_actor(self) -> MultiTaskActor:
+        return self.actor_class(
+            self.state_dim, self.action_dim, self.n_tasks, self.pi_arch, self.activation_fn, **self.actor_kwargs
+        )
+
+    def make_critic(self) -> MultiTaskCritic:
+        return MultiTaskCritic(
+            self.state_dim, self.action_dim, self.n_tasks, self.qf_arch, self.activation_fn, self.critic_arch, self.n_critics
+        )
+
+    def action_log_prob(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions and log-probabilities of a task-major batch."""
+        return self.actor.action_log_prob(obs, None, noise)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(
+            lr_schedule=self._dummy_schedule,  # type: ignore[attr-defined]
+            n_tasks=self.n_tasks,
+            net_arch=self.net_arch,
+            activation_fn=self.activation_fn,
+            critic_arch=self.critic_arch,
+            n_critics=self.n_critics,
+            actor_kwargs=self.actor_kwargs,
+            optimizer_class=self.optimizer_class,
+            optimizer_kwargs=self.optimizer_kwargs,
+        )
+        return data
+
+    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self._predict(obs, deterministic=deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        return self.actor(observation, deterministic)
+
+    def set_training_mode(self, mode: bool) -> None:
+        self.actor.train(mode)
+        self.critic.train(mode)
+        self.training = mode
+
+
+class MultiHeadPolicy(MTSACPolicy):
+    """SAC-MT-MH: shared trunk, one output head per task."""
+
+    actor_class = MultiHeadActor
+
+
+class SoftModularPolicy(MTSACPolicy):
+    """SAC-soft-modular: soft modularization actor (``actor_kwargs``: n_layers, n_modules, module_size)."""
+
+    actor_class = SoftModularActor
+
+
+class IndependentPolicy(MTSACPolicy):
+    """SAC-Ind: N independent actors on the state alone, with per-task critics."""
+
+    actor_class = IndependentActor
+MlpPolicy = MTSACPolicy
