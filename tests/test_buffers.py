@@ -130,8 +130,8 @@ def test_balanced_task_major_sampling(n_steps):
 
 def test_timeout_handling():
     streams = [
-        {"rewards": np.ones(1, np.float32), "dones": np.array([True]), "truncs": np.array([flag]), "ep_ids": np.zeros(1)}
-        for flag in (True, False)
+        {"rewards": np.ones(1, np.float32), "dones": np.array([True]), "truncs": np.array([trunc]), "ep_ids": [0]}
+        for trunc in (True, False)
     ]
     buf = make_buffer(2, 1)
     feed(buf, streams)

@@ -328,9 +328,9 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         for j in np.argsort(-store.returns, kind="stable"):
             sl = slice(starts[j], starts[j] + store.lengths[j])
             episode: dict[str, Any] = {name: store.data[name][sl].copy() for name in _FIELDS}
-            episode.update(
-                {"return": float(store.returns[j]), "length": int(store.lengths[j]), "episode_id": int(store.episode_ids[j])}
-            )
+            episode["return"] = float(store.returns[j])
+            episode["length"] = int(store.lengths[j])
+            episode["episode_id"] = int(store.episode_ids[j])
             episodes.append(episode)
         return episodes
 

@@ -41,3 +41,30 @@ def check_checkpoint(path, algorithm_name: str, n_tasks: int | None) -> None:
     saved_tasks = data.get("n_tasks")
     if n_tasks is not None and saved_tasks != n_tasks:
         raise ValueError(f"This checkpoint was trained on {saved_tasks} tasks; the env given has {n_tasks} tasks.")
+
+
+def capture_rng_state() -> dict:
+    """The global RNG states (python, numpy, torch CPU and CUDA) that training draws from."""
+    import random
+
+    import numpy as np
+    import torch as th
+
+    state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": th.get_rng_state()}
+    if th.cuda.is_available():
+        state["cuda"] = th.cuda.get_rng_state_all()
+    return state
+
+
+def restore_rng_state(state: dict) -> None:
+    """Restore what :func:`capture_rng_state` captured."""
+    import random
+
+    import numpy as np
+    import torch as th
+
+    random.setstate(state["python"])
+    np.random.set_state(state["numpy"])
+    th.set_rng_state(state["torch"])
+    if "cuda" in state and th.cuda.is_available():
+        th.cuda.set_rng_state_all(state["cuda"])

@@ -22,7 +22,7 @@ from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer
-from sb3_mtte.common.checkpoints import check_checkpoint
+from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss, per_task_entropy_loss
 from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
@@ -151,8 +151,7 @@ class MTSAC(OffPolicyAlgorithm):
             self.observation_space,
             self.action_space,
             self.lr_schedule,
-            n_tasks=self.n_tasks,
-            critic_arch=self.critic_arch,
+            **self._policy_build_kwargs(),
             **self.policy_kwargs,
         ).to(self.device)
         self._convert_train_freq()
@@ -160,6 +159,10 @@ class MTSAC(OffPolicyAlgorithm):
         if self.env is not None:
             self._setup_replay_buffer()
         self._setup_entropy_coef()
+
+    def _policy_build_kwargs(self) -> dict[str, Any]:
+        """Policy arguments owned by the algorithm (not stored in ``policy_kwargs``)."""
+        return {"n_tasks": self.n_tasks, "critic_arch": self.critic_arch}
 
     def _setup_replay_buffer(self) -> None:
         """Build the replay buffer (lazily, so ``load(path, env=None)`` allocates none)."""
@@ -324,15 +327,29 @@ class MTSAC(OffPolicyAlgorithm):
             return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
         return state_dicts, ["ent_coef_tensor"]
 
+    def save(self, path, exclude=None, include=None) -> None:
+        """Save the model; the global RNG states are saved with it so that a resumed run continues exactly."""
+        self.rng_state = capture_rng_state()
+        try:
+            super().save(path, exclude=exclude, include=include)
+        finally:
+            del self.rng_state
+
     @classmethod
     def load(cls, path, env: GymEnv | None = None, device: th.device | str = "auto", **kwargs):  # type: ignore[override]
         """Load a model saved by this class; a checkpoint of another algorithm or task count raises ValueError.
 
-        ``env=None`` is enough for prediction and evaluation: no replay buffer is allocated.
+        ``env=None`` is enough for prediction and evaluation: no replay buffer is allocated. The RNG states saved
+        with the model are restored, so training resumed from a model and its replay buffer continues as if it
+        had never stopped (CPU).
         """
         n_tasks = env.num_envs if isinstance(env, VecEnv) else None
         check_checkpoint(path, cls.__name__, n_tasks)
-        return super().load(path, env=env, device=device, **kwargs)
+        model = super().load(path, env=env, device=device, **kwargs)
+        rng_state = model.__dict__.pop("rng_state", None)
+        if rng_state is not None:
+            restore_rng_state(rng_state)
+        return model
 
     def learn(
         self: SelfMTSAC,

@@ -1,0 +1,118 @@
+"""Multi-task environments: Meta-World v3 benchmarks and small toy benchmarks, one sub-env per task.
+
+Every env built here follows the layout the algorithms of this package expect: sub-env i runs task i, its
+observation is the task's state followed by the one-hot e_i (float32), ``info["task_index"]`` and
+``info["is_success"]`` (success at any step of the episode) come with every step, and ``task_name`` is readable
+with ``env.get_attr("task_name")``. A new goal variation is drawn at every reset from an RNG seeded by the
+benchmark seed and the task index; ``env.env_method("set_eval_mode", True)`` cycles through them in order instead.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+from sb3_mtte.common.utils import check_multitask_env, check_one_hot, get_task_names
+from sb3_mtte.envs.metaworld_envs import (
+    METAWORLD_BENCHMARKS,
+    MT10_TASKS,
+    MT20_TASKS,
+    MT50_TASKS,
+    MetaWorldExpertPolicy,
+    make_metaworld_env_fns,
+)
+from sb3_mtte.envs.toy import TOY_BENCHMARKS, ToyOraclePolicy, make_toy_env_fns, parse_toy_name
+from sb3_mtte.envs.wrappers import MultiTaskWrapper
+
+BenchmarkSpec = str | Sequence[str]
+"""A benchmark name ("MT10", "MT20", "MT50", a toy name) or a list of Meta-World v3 env names."""
+
+
+def _valid_names() -> str:
+    return f"{sorted(METAWORLD_BENCHMARKS)}, {sorted(TOY_BENCHMARKS)} (optionally '-N'), or a list of {MT50_TASKS}"
+
+
+def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list[Callable[[], gym.Env]]:
+    """One constructor per task (constructor i builds sub-env i), for any VecEnv class or a launcher.
+
+    :param benchmark: see :func:`make_mt_env`.
+    :param seed: benchmark seed.
+    :param kwargs: see :func:`make_mt_env`.
+    :raises ValueError: for an unknown benchmark or env name.
+    """
+    if isinstance(benchmark, str):
+        toy = parse_toy_name(benchmark, kwargs.pop("n_tasks", None))
+        if toy is not None:
+            return make_toy_env_fns(toy[0], seed=seed, n_tasks=toy[1], **kwargs)
+        if benchmark.upper() not in METAWORLD_BENCHMARKS:
+            raise ValueError(f"Unknown benchmark {benchmark!r}; valid: {_valid_names()}.")
+        task_names = METAWORLD_BENCHMARKS[benchmark.upper()]
+    else:
+        task_names = list(benchmark)
+    if kwargs.pop("n_tasks", len(task_names)) != len(task_names):
+        raise ValueError(f"n_tasks does not match the {len(task_names)} tasks of {benchmark!r}.")
+    return make_metaworld_env_fns(task_names, seed=seed, **kwargs)
+
+
+def make_mt_env(
+    benchmark: BenchmarkSpec,
+    seed: int = 0,
+    vec_env_cls: type[VecEnv] = DummyVecEnv,
+    vec_env_kwargs: dict[str, Any] | None = None,
+    monitor: bool = True,
+    **kwargs: Any,
+) -> VecEnv:
+    """Build a multi-task VecEnv: sub-env i runs task i and observes its state followed by the one-hot e_i.
+
+    :param benchmark: ``"MT10"``, ``"MT20"``, ``"MT50"``, a list of Meta-World v3 env names, or a toy benchmark
+        (``"toy-conflict"``, ``"toy-agree"``, optionally with the task count: ``"toy-conflict-6"``).
+    :param seed: seed of the goal variations, of their sampling at every reset and of the envs: the same seed
+        gives the same episodes for the same actions.
+    :param vec_env_cls: SB3 VecEnv class (``DummyVecEnv`` or ``SubprocVecEnv``).
+    :param vec_env_kwargs: keyword arguments of ``vec_env_cls`` (e.g. ``start_method`` for ``SubprocVecEnv``).
+    :param monitor: wrap each sub-env in SB3's ``Monitor`` (episode return and length in ``info["episode"]``).
+    :param kwargs: ``max_episode_steps`` (Meta-World 500, toy 50); ``render_mode`` (``"rgb_array"`` for video);
+        for Meta-World ``camera_name``, ``camera_id``, ``width``, ``height``; for toys ``n_tasks`` (default 4).
+    :raises ValueError: for an unknown benchmark or env name, or an env that breaks the multi-task layout.
+    """
+    env_fns = make_env_fns(benchmark, seed=seed, **kwargs)
+    if monitor:
+        env_fns = [_monitored(fn) for fn in env_fns]
+    env = vec_env_cls(env_fns, **(vec_env_kwargs or {}))
+    try:
+        n_tasks = check_multitask_env(env, len(env_fns))
+        check_one_hot(env.reset(), n_tasks)
+    except Exception:
+        env.close()
+        raise
+    return env
+
+
+class _monitored:
+    """Picklable constructor that wraps another one's env in SB3's ``Monitor``."""
+
+    def __init__(self, env_fn: Callable[[], gym.Env]) -> None:
+        self.env_fn = env_fn
+
+    def __call__(self) -> gym.Env:
+        return Monitor(self.env_fn())
+
+
+__all__ = [
+    "MT10_TASKS",
+    "MT20_TASKS",
+    "MT50_TASKS",
+    "METAWORLD_BENCHMARKS",
+    "TOY_BENCHMARKS",
+    "BenchmarkSpec",
+    "MetaWorldExpertPolicy",
+    "MultiTaskWrapper",
+    "ToyOraclePolicy",
+    "get_task_names",
+    "make_env_fns",
+    "make_mt_env",
+]

@@ -1,0 +1,263 @@
+"""MTSACTE: multi-task SAC with a task embedding network (the paper's method, Algorithm 1)."""
+
+from __future__ import annotations
+
+import json
+import os
+from typing import Any, ClassVar, TypeVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
+
+from sb3_mtte.common.utils import check_finite, task_log_key
+from sb3_mtte.mtsac.mtsac import MTSAC
+from sb3_mtte.mtsacte.objectives import negative_transfer_measure, select_benign_tasks, task_weights
+from sb3_mtte.mtsacte.policies import MTSACTEPolicy
+from sb3_mtte.mtsacte.transfer import (
+    ESTIMATORS,
+    RepresentationBatch,
+    TaskObjectives,
+    representation_gradients,
+    transfer_matrix,
+)
+
+SelfMTSACTE = TypeVar("SelfMTSACTE", bound="MTSACTE")
+
+
+class MTSACTE(MTSAC):
+    """Multi-task SAC with a task embedding network, negative-transfer task weights, clipped per-task soft-Q
+    losses and top-K trajectory replay ("Multi-task RL with a task representation method").
+
+    Every ``iteration_length`` vector steps, ``rep_gradient_steps`` updates of the encoder E_phi and decoder D by
+    J^rep (Eq. 14) on top-K batches, each recomputing mu (Eq. 6), C_s (Eq. 7) and w (Eq. 8); the last C_s and w
+    hold for the iteration. Every vector step: clipped per-task critic losses (Eq. 15-16), the weighted policy loss
+    (Eq. 9) with z detached from phi, per-task beta_i, Polyak targets.
+
+    Ablations of Fig. 7: ``use_vae=False`` (Ours-VAE), ``q_loss_clip=None`` (Ours-clip), ``use_topk=False``
+    (Ours-bestbatch).
+
+    :param policy: ``"MlpPolicy"`` or :class:`MTSACTEPolicy`.
+    :param env: multi-task VecEnv, sub-env i is task i.
+    :param n_select: M, the size of the benign set C_s (default N // 2: 5 on MT10, 10 on MT20); 1 <= M < N.
+    :param top_k: K, best episodes kept per task for the representation batches (30).
+    :param q_loss_clip: V_clip of Eq. 16 (2000); None disables clipping.
+    :param nt_step_size: alpha of Eq. 4, the virtual gradient-ascent step. Default 1e-3: small enough for the
+        first-order picture (J_i(theta^k) - J_i(theta) ~ alpha g_i . g_k) to hold, large enough to stand far
+        above float32 rounding of objectives of Q-value scale.
+    :param c_vae: c_vae of Eq. 14, weight of the VAE term (1.0).
+    :param rep_learning_rate: learning rate delta of phi and the decoder (3e-4).
+    :param iteration_length: H, vector steps per iteration (500, Meta-World's horizon).
+    :param rep_gradient_steps: J^rep updates at the start of every iteration (10).
+    :param nt_estimator: ``"virtual_step"`` (exact Eq. 4-6) or ``"gradient_dot"`` (first order, Gram matrix).
+    :param use_vae: include the VAE term of Eq. 14.
+    :param use_topk: draw representation batches from the top-K episodes (else from the main buffer).
+    :param nt_chunk_size: ``vmap`` chunk over the N virtual parameter sets (None: all at once).
+    :param kwargs: every other argument of :class:`sb3_mtte.MTSAC` (learning_rate, batch_size = L per task, ...).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MTSACTEPolicy}
+    policy: MTSACTEPolicy
+
+    def __init__(
+        self,
+        policy: str | type[MTSACTEPolicy],
+        env: GymEnv | str | None,
+        learning_rate: float | Schedule = 3e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 5_000,
+        batch_size: int = 128,
+        tau: float = 0.005,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 1,
+        gradient_steps: int = 1,
+        ent_coef: str | float = "auto",
+        target_entropy: str | float = "auto",
+        target_update_interval: int = 1,
+        n_select: int | None = None,
+        top_k: int = 30,
+        q_loss_clip: float | None = 2000.0,
+        nt_step_size: float = 1e-3,
+        c_vae: float = 1.0,
+        rep_learning_rate: float = 3e-4,
+        iteration_length: int = 500,
+        rep_gradient_steps: int = 10,
+        nt_estimator: str = "virtual_step",
+        use_vae: bool = True,
+        use_topk: bool = True,
+        nt_chunk_size: int | None = None,
+        action_noise: ActionNoise | None = None,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        _init_setup_model: bool = True,
+    ) -> None:
+        if top_k < 1:
+            raise ValueError(f"top_k (K) must be at least 1, got {top_k}.")
+        if nt_estimator not in ESTIMATORS:
+            raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {nt_estimator!r}.")
+        if nt_step_size < 0 or c_vae < 0 or rep_learning_rate <= 0:
+            raise ValueError("nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0.")
+        if iteration_length < 1 or rep_gradient_steps < 1:
+            raise ValueError("iteration_length (H) and rep_gradient_steps must be at least 1.")
+        replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
+        super().__init__(
+            policy,
+            env,
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            ent_coef=ent_coef,
+            target_entropy=target_entropy,
+            target_update_interval=target_update_interval,
+            critic_arch="per_task",
+            q_loss_clip=q_loss_clip,
+            action_noise=action_noise,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=False,
+        )
+        if self.env is not None:
+            n_select = self.n_tasks // 2 if n_select is None else n_select
+            if not 1 <= n_select < self.n_tasks:
+                raise ValueError(f"n_select (M) must satisfy 1 <= M < N = {self.n_tasks}, got {n_select}.")
+        self.n_select = n_select
+        self.top_k, self.use_topk, self.use_vae = top_k, use_topk, use_vae
+        self.nt_step_size, self.c_vae, self.rep_learning_rate = nt_step_size, c_vae, rep_learning_rate
+        self.iteration_length, self.rep_gradient_steps = iteration_length, rep_gradient_steps
+        self.nt_estimator, self.nt_chunk_size = nt_estimator, nt_chunk_size
+        self._last_iteration_start: int | None = None
+        if _init_setup_model:
+            self._setup_model()
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        if getattr(self, "mu", None) is None:
+            n = self.n_tasks
+            self.mu = np.zeros(n, dtype=np.int64)
+            self.selected_tasks = np.zeros(n, dtype=bool)
+            self.task_weights = np.full(n, 1.0 / n)
+            self.transfer_matrix = np.zeros((n, n))
+
+    def _policy_build_kwargs(self) -> dict[str, Any]:
+        return {**super()._policy_build_kwargs(), "rep_learning_rate": self.rep_learning_rate}
+
+    def _create_aliases(self) -> None:
+        super()._create_aliases()
+        self.encoder = self.policy.encoder
+        self.decoder = self.policy.decoder
+
+    # --------------------------------------------------------------------------------------------- training
+    def task_weights_for_policy(self) -> th.Tensor:
+        """w of Eq. 8 from the last recomputation (uniform before the first)."""
+        return th.as_tensor(self.task_weights, dtype=th.float32, device=self.device)
+
+    def train(self, gradient_steps: int, batch_size: int = 128) -> None:
+        vector_step = self.num_timesteps // self.n_tasks
+        if self._last_iteration_start is None or vector_step - self._last_iteration_start >= self.iteration_length:
+            self._last_iteration_start = vector_step
+            self.update_representation(batch_size)
+        super().train(gradient_steps, batch_size)
+
+    def _representation_batch(self, batch_size: int) -> RepresentationBatch:
+        buffer = self.replay_buffer
+        data = buffer.sample_top_k(batch_size) if self.use_topk else buffer.sample(batch_size)  # type: ignore[union-attr]
+        return RepresentationBatch.draw(data.observations, self.n_tasks, self.policy.z_dim, self.policy.action_dim)
+
+    def update_representation(self, batch_size: int) -> None:
+        """``rep_gradient_steps`` updates of phi and the decoder by J^rep (Alg. 1), each recomputing mu, C_s, w."""
+        self.policy.set_training_mode(True)
+        losses = []
+        for _ in range(self.rep_gradient_steps):
+            batch = self._representation_batch(batch_size)
+            objectives = TaskObjectives(self.policy, batch, self.entropy_coefficients, self.nt_chunk_size)
+            encoder_params, _ = objectives.phi()
+            with th.no_grad():
+                z = objectives.embedding(encoder_params)[0]
+                transfer = transfer_matrix(objectives, z, self.nt_step_size, self.nt_estimator)
+            mu = negative_transfer_measure(transfer)
+            selected = select_benign_tasks(mu, self.n_select)  # type: ignore[arg-type]
+            loss, enc_grads, dec_grads = representation_gradients(
+                objectives,
+                th.nonzero(~selected).flatten(),
+                step_size=self.nt_step_size,
+                c_vae=self.c_vae,
+                use_vae=self.use_vae,
+            )
+            check_finite("representation loss (J^rep)", loss)
+            self._apply_gradients(enc_grads, dec_grads)
+            losses.append(loss.detach())
+            self._store_negative_transfer(transfer, mu, selected)
+        self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
+        self._log_negative_transfer()
+
+    def _apply_gradients(self, enc_grads: dict[str, th.Tensor], dec_grads: dict[str, th.Tensor]) -> None:
+        optimizer = self.policy.rep_optimizer
+        optimizer.zero_grad()
+        for module, grads in ((self.encoder, enc_grads), (self.decoder, dec_grads)):
+            for name, param in module.named_parameters():
+                param.grad = grads[name]
+        optimizer.step()
+
+    def _store_negative_transfer(self, transfer: th.Tensor, mu: th.Tensor, selected: th.Tensor) -> None:
+        self.transfer_matrix = transfer.cpu().numpy().astype(np.float64)
+        self.mu = mu.cpu().numpy().astype(np.int64)
+        self.selected_tasks = selected.cpu().numpy()
+        self.task_weights = task_weights(mu.double()).cpu().numpy()
+
+    def _log_negative_transfer(self) -> None:
+        self.logger.record("nt/n_selected", int(self.selected_tasks.sum()))
+        self.logger.record("nt/mu_mean", float(self.mu.mean()))
+        for i in range(self.n_tasks):
+            name = self._task_name(i)
+            self.logger.record(task_log_key("nt/mu", i, name), int(self.mu[i]))
+            self.logger.record(task_log_key("nt/weight", i, name), float(self.task_weights[i]))
+        log_dir = self.logger.get_dir() if self._logger is not None else None
+        if log_dir:
+            record = {
+                "timesteps": self.num_timesteps,
+                "mu": self.mu.tolist(),
+                "selected": self.selected_tasks.astype(int).tolist(),
+                "weights": self.task_weights.tolist(),
+                "transfer_matrix": self.transfer_matrix.tolist(),
+            }
+            with open(os.path.join(log_dir, "negative_transfer.jsonl"), "a") as file:
+                file.write(json.dumps(record) + "\n")
+
+    # ------------------------------------------------------------------------------------------ save / load
+    def _excluded_save_params(self) -> list[str]:
+        return [*super()._excluded_save_params(), "encoder", "decoder"]
+
+    def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
+        state_dicts, variables = super()._get_torch_save_params()
+        return [*state_dicts, "policy.rep_optimizer"], variables
+
+    def learn(
+        self: SelfMTSACTE,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        log_interval: int = 4,
+        tb_log_name: str = "MTSACTE",
+        reset_num_timesteps: bool = True,
+        progress_bar: bool = False,
+    ) -> SelfMTSACTE:
+        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)

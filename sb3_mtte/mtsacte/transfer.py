@@ -1,0 +1,174 @@
+"""Vectorised evaluation of the per-task objectives, the negative-transfer matrix and the J^rep gradient.
+
+Everything is a pure function of the parameters (``torch.func``): per-task gradients are one ``vmap(grad)``
+over the task axis, the N x N evaluation one ``vmap`` over the stacked virtual parameters theta^k, and the
+meta-gradient of J^NT w.r.t. phi differentiates through the inner gradient (second order). Batches are
+task-major ``(N, L, ...)`` and every comparison uses the same batch and the same noise (common random numbers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch as th
+from torch.func import functional_call, grad, vmap
+
+from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
+from sb3_mtte.mtsacte.objectives import (
+    negative_transfer_objective,
+    representation_objective,
+    sac_task_objective,
+    vae_objective,
+    virtual_step,
+)
+from sb3_mtte.mtsacte.policies import MTSACTEPolicy
+
+Params = dict[str, th.Tensor]
+ESTIMATORS = ("virtual_step", "gradient_dot")
+
+
+@dataclass
+class RepresentationBatch:
+    """A task-major mini-batch with the noise that every objective evaluation shares.
+
+    :param obs: ``(N, L, state_dim + N)`` observations (state + one-hot).
+    :param z_noise: ``(N, L, z_dim)`` standard normal noise of z ~ E_phi.
+    :param action_noise: ``(N, L, action_dim)`` standard normal noise of a ~ pi_theta.
+    """
+
+    obs: th.Tensor
+    z_noise: th.Tensor
+    action_noise: th.Tensor
+
+    @classmethod
+    def draw(cls, obs: th.Tensor, n_tasks: int, z_dim: int, action_dim: int) -> RepresentationBatch:
+        obs = obs.view(n_tasks, -1, obs.shape[-1])
+        shape = obs.shape[:2]
+        return cls(obs, th.randn(*shape, z_dim, device=obs.device), th.randn(*shape, action_dim, device=obs.device))
+
+
+class TaskObjectives:
+    """J_SAC(theta, phi, T_i) of every task on a fixed batch, as pure functions of theta and z.
+
+    Critics and beta are held fixed (detached) while theta and phi vary.
+
+    :param policy: the MTSACTE policy (its actor, encoder and critics are read, never modified).
+    :param batch: the shared batch and noise.
+    :param ent_coef: ``(N,)`` beta_i.
+    :param chunk_size: ``vmap`` chunk over theta^k (None: all at once; 1: one theta^k per batched pass).
+    """
+
+    def __init__(
+        self, policy: MTSACTEPolicy, batch: RepresentationBatch, ent_coef: th.Tensor, chunk_size: int | None = None
+    ) -> None:
+        self.policy, self.batch, self.chunk_size = policy, batch, chunk_size
+        n, c = policy.n_tasks, policy.n_critics
+        self.state = batch.obs[..., : policy.state_dim]
+        self.q_params = {k: v.detach().view(n, c, *v.shape[1:]) for k, v in policy.critic.q_net.named_parameters()}
+        self.ent_coef = ent_coef.detach()
+
+    def theta(self) -> Params:
+        return {k: v.detach() for k, v in self.policy.actor.named_parameters()}
+
+    def phi(self) -> tuple[Params, Params]:
+        encoder = {k: v.detach() for k, v in self.policy.encoder.named_parameters()}
+        decoder = {k: v.detach() for k, v in self.policy.decoder.named_parameters()}
+        return encoder, decoder
+
+    def embedding(self, encoder_params: Params) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
+        """z = mean + std * noise from E_phi, with its mean and log-std, each ``(N, L, ...)``."""
+        mean, log_std = split_mean_log_std(functional_call(self.policy.encoder, encoder_params, (self.batch.obs,)))
+        return mean + log_std.exp() * self.batch.z_noise, mean, log_std
+
+    def _single(self, theta: Params, q_params: Params, state: th.Tensor, z: th.Tensor, noise: th.Tensor, beta):
+        """J_SAC of one task from its ``(L, ...)`` slice of the batch."""
+        mean, log_std = split_mean_log_std(functional_call(self.policy.actor, theta, (th.cat([state, z], dim=-1),)))
+        action, log_prob = squashed_gaussian_sample(mean, log_std, noise)
+        q_in = th.cat([state, action], dim=-1).expand(self.policy.n_critics, *state.shape[:-1], -1)
+        min_q = functional_call(self.policy.critic.q_net, q_params, (q_in,)).squeeze(-1).min(dim=0).values
+        return sac_task_objective(log_prob.unsqueeze(0), min_q.unsqueeze(0), beta.unsqueeze(0)).squeeze(0)
+
+    def _task_args(self, z: th.Tensor, tasks: th.Tensor | None):
+        args = (self.q_params, self.state, z, self.batch.action_noise, self.ent_coef)
+        if tasks is None:
+            return args
+        q_params, *rest = args
+        return ({k: v[tasks] for k, v in q_params.items()}, *(x[tasks] for x in rest))
+
+    def all_tasks(self, theta: Params, z: th.Tensor) -> th.Tensor:
+        """``(N,)``: J_i(theta) for every task i."""
+        return vmap(self._single, in_dims=(None, 0, 0, 0, 0, 0))(theta, *self._task_args(z, None))
+
+    def gradients(self, theta: Params, z: th.Tensor, tasks: th.Tensor | None = None) -> Params:
+        """grad_theta J_k(theta) for every task k (or the given ones), stacked on a leading axis."""
+        return vmap(grad(self._single), in_dims=(None, 0, 0, 0, 0, 0))(theta, *self._task_args(z, tasks))
+
+    def after_virtual_steps(self, thetas: Params, z: th.Tensor) -> th.Tensor:
+        """``(K, N)``: row k holds J_i(theta^k) for every task i, for stacked parameters theta^k."""
+        return vmap(self.all_tasks, in_dims=(0, None), chunk_size=self.chunk_size)(thetas, z)
+
+
+def virtual_parameters(theta: Params, grads: Params, step_size: float) -> Params:
+    """Eq. 4 for every stacked gradient: theta^k = theta + alpha * g_k."""
+    return {k: virtual_step(theta[k].unsqueeze(0), grads[k], step_size) for k in theta}
+
+
+def transfer_matrix(
+    objectives: TaskObjectives, z: th.Tensor, step_size: float, estimator: str = "virtual_step"
+) -> th.Tensor:
+    """``(N, N)`` matrix [k, i] = J_i(theta^k) - J_i(theta) (Eq. 4-5), the input of mu (Eq. 6).
+
+    ``virtual_step`` evaluates it exactly; ``gradient_dot`` uses its first-order expansion alpha * g_k . g_i.
+    """
+    if estimator not in ESTIMATORS:
+        raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {estimator!r}.")
+    theta = objectives.theta()
+    grads = objectives.gradients(theta, z)
+    if estimator == "gradient_dot":
+        flat = th.cat([g.flatten(1) for g in grads.values()], dim=1)
+        return step_size * flat @ flat.T
+    before = objectives.all_tasks(theta, z)
+    after = objectives.after_virtual_steps(virtual_parameters(theta, grads, step_size), z)
+    return after - before.unsqueeze(0)
+
+
+def representation_loss(
+    objectives: TaskObjectives,
+    encoder_params: Params,
+    decoder_params: Params,
+    harmful_tasks: th.Tensor,
+    step_size: float,
+    c_vae: float,
+    use_vae: bool = True,
+) -> th.Tensor:
+    """-J^rep (Eq. 14) as a function of phi (encoder) and varphi (decoder); minimise it.
+
+    J^NT (Eq. 11-12) differentiates through theta^k = theta + alpha grad_theta J_k(theta, phi) (second order).
+    """
+    z, mean, log_std = objectives.embedding(encoder_params)
+    theta = objectives.theta()
+    if harmful_tasks.numel() > 0:
+        grads = objectives.gradients(theta, z, harmful_tasks)
+        after = objectives.after_virtual_steps(virtual_parameters(theta, grads, step_size), z)
+        j_nt = negative_transfer_objective(after)
+    else:
+        j_nt = z.new_zeros(())
+    if use_vae:
+        one_hot = objectives.batch.obs[..., objectives.state.shape[-1] :]
+        reconstruction = functional_call(objectives.policy.decoder, decoder_params, (th.cat([z, one_hot], dim=-1),))
+        j_vae = vae_objective(reconstruction, objectives.state, mean, log_std)
+    else:
+        j_vae = z.new_zeros(())
+    return -representation_objective(j_nt, j_vae, c_vae)
+
+
+def representation_gradients(objectives: TaskObjectives, harmful_tasks: th.Tensor, **kwargs) -> tuple[th.Tensor, Params, Params]:
+    """Loss -J^rep and its gradients w.r.t. the encoder and decoder parameters."""
+    encoder_params, decoder_params = objectives.phi()
+
+    def loss_with_aux(enc: Params, dec: Params):
+        loss = representation_loss(objectives, enc, dec, harmful_tasks, **kwargs)
+        return loss, loss
+
+    (enc_grads, dec_grads), loss = grad(loss_with_aux, argnums=(0, 1), has_aux=True)(encoder_params, decoder_params)
+    return loss, enc_grads, dec_grads
