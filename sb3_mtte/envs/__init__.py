@@ -44,8 +44,9 @@ def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list
     :param kwargs: see :func:`make_mt_env`.
     :raises ValueError: for an unknown benchmark or env name.
     """
+    n_tasks = kwargs.pop("n_tasks", None)
     if isinstance(benchmark, str):
-        toy = parse_toy_name(benchmark, kwargs.pop("n_tasks", None))
+        toy = parse_toy_name(benchmark, n_tasks)
         if toy is not None:
             return make_toy_env_fns(toy[0], seed=seed, n_tasks=toy[1], **kwargs)
         if benchmark.upper() not in METAWORLD_BENCHMARKS:
@@ -53,7 +54,7 @@ def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list
         task_names = METAWORLD_BENCHMARKS[benchmark.upper()]
     else:
         task_names = list(benchmark)
-    if kwargs.pop("n_tasks", len(task_names)) != len(task_names):
+    if n_tasks is not None and n_tasks != len(task_names):
         raise ValueError(f"n_tasks does not match the {len(task_names)} tasks of {benchmark!r}.")
     return make_metaworld_env_fns(task_names, seed=seed, **kwargs)
 
