@@ -62,7 +62,7 @@ _POLICY_LABELS = {
 
 def now() -> str:
     """The current UTC time, ISO 8601."""
-    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
 
 
 def algo_label(algo: str, hyperparams: Mapping[str, Any] | None = None) -> str:
@@ -123,9 +123,7 @@ def git_info(path: str | os.PathLike | None = None) -> dict[str, Any]:
 
     def git(*args: str) -> str | None:
         try:
-            result = subprocess.run(
-                ["git", "-C", path, *args], capture_output=True, text=True, timeout=10, check=False
-            )
+            result = subprocess.run(["git", "-C", path, *args], capture_output=True, text=True, timeout=10, check=False)
         except (OSError, subprocess.SubprocessError):
             return None
         return result.stdout.strip() if result.returncode == 0 else None
@@ -142,13 +140,12 @@ def device_info() -> dict[str, Any]:
     info: dict[str, Any] = {"cpu_count": os.cpu_count()}
     try:
         import torch as th
-
-        info["torch_threads"] = th.get_num_threads()
-        info["cuda"] = th.cuda.is_available()
-        if info["cuda"]:
-            info["cuda_device"] = th.cuda.get_device_name(0)
-    except Exception:  # noqa: BLE001
-        pass
+    except ImportError:  # pragma: no cover
+        return info
+    info["torch_threads"] = th.get_num_threads()
+    info["cuda"] = th.cuda.is_available()
+    if info["cuda"]:
+        info["cuda_device"] = th.cuda.get_device_name(0)
     return info
 
 

@@ -48,7 +48,9 @@ class MTSACTE(MTSAC):
     :param nt_step_size: alpha of Eq. 4, the virtual gradient-ascent step. Default 1e-3: small enough for the
         first-order picture (J_i(theta^k) - J_i(theta) ~ alpha g_i . g_k) to hold, large enough to stand far
         above float32 rounding of objectives of Q-value scale.
-    :param c_vae: c_vae of Eq. 14, weight of the VAE term (1.0).
+    :param c_vae: c_vae of Eq. 14, weight of the VAE term (0.01: with larger weights the KL term collapsed E_phi
+        onto the prior, so z carried no task information and the policy, which sees no one-hot, could not tell
+        tasks apart; see the README).
     :param rep_learning_rate: learning rate delta of phi and the decoder (3e-4).
     :param iteration_length: H, vector steps per iteration (500, Meta-World's horizon).
     :param rep_gradient_steps: J^rep updates at the start of every iteration (10).
@@ -81,7 +83,7 @@ class MTSACTE(MTSAC):
         top_k: int = 30,
         q_loss_clip: float | None = 2000.0,
         nt_step_size: float = 1e-3,
-        c_vae: float = 1.0,
+        c_vae: float = 0.01,
         rep_learning_rate: float = 3e-4,
         iteration_length: int = 500,
         rep_gradient_steps: int = 10,

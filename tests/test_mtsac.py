@@ -1,0 +1,206 @@
+"""MTSAC family: losses (Eq. 15-16), per-task temperatures, save/load/resume, reproducibility, bad input,
+learning on the toy env and an MT10 smoke run of every variant."""
+
+import numpy as np
+import pytest
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_mtte import MTSAC, MTSACTE, evaluate_success, make_mt_env
+from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss, per_task_entropy_loss
+
+POLICIES = ["MlpPolicy", "MultiHeadPolicy", "SoftModularPolicy", "IndependentPolicy"]
+SMALL = dict(net_arch=[32, 32])
+
+
+def small_model(policy="MlpPolicy", seed=0, env=None, **kwargs):
+    env = env or make_mt_env("toy-conflict", seed=seed)
+    kwargs.setdefault("policy_kwargs", SMALL)
+    if policy == "SoftModularPolicy":
+        kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], "actor_kwargs": dict(n_layers=2, n_modules=2, module_size=16)}
+    return MTSAC(policy, env, learning_starts=100, batch_size=16, seed=seed, **kwargs)
+
+
+def all_params(model):
+    return {k: v.detach().clone() for k, v in model.policy.state_dict().items()}
+
+
+# ------------------------------------------------------------------------------------------------ Eq. 15-16
+def test_clipped_q_loss_equals_loop_and_zeroes_gradient_above_clip():
+    th.manual_seed(0)
+    q = th.randn(2, 3, 5, requires_grad=True)
+    target = th.randn(3, 5) * 3
+    target[1, 2] = 100.0  # 0.5 * ~100^2 >> clip
+    loss = clipped_soft_q_loss(q, target, clip=2.0)
+    expected = th.zeros(3)
+    for i in range(3):
+        for j in range(2):
+            per_sample = [min(0.5 * float(q[j, i, b].detach() - target[i, b]) ** 2, 2.0) for b in range(5)]
+            expected[i] += sum(per_sample) / 5
+    assert th.allclose(loss, expected, atol=1e-5)
+    loss.sum().backward()
+    above = 0.5 * (q.detach() - target) ** 2 > 2.0
+    assert above[:, 1, 2].all()
+    assert th.all(q.grad[above] == 0)
+    assert th.all(q.grad[~above] != 0)
+
+
+def test_q_loss_without_clip_is_plain_half_mse():
+    th.manual_seed(1)
+    q, target = th.randn(2, 4, 6), th.randn(4, 6) * 50
+    loss = clipped_soft_q_loss(q, target, clip=None)
+    expected = sum(0.5 * ((q[j] - target) ** 2).mean(dim=1) for j in range(2))
+    assert th.allclose(loss, expected)
+
+
+def test_actor_loss_is_negative_sac_objective_per_task():
+    log_prob = th.tensor([[1.0, 3.0], [0.0, -2.0]])
+    min_q = th.tensor([[2.0, 2.0], [1.0, 5.0]])
+    ent = th.tensor([0.5, 2.0])
+    # task 0: mean(0.5*[1,3] - 2) = mean([-1.5, -0.5]) = -1; task 1: mean([0-1, -4-5]) = -5
+    assert th.allclose(per_task_actor_loss(log_prob, min_q, ent), th.tensor([-1.0, -5.0]))
+
+
+def test_entropy_loss_of_task_i_moves_only_beta_i():
+    log_ent_coef = th.zeros(4, requires_grad=True)
+    optimizer = th.optim.Adam([log_ent_coef], lr=0.1)
+    log_prob = th.randn(4, 8)
+    per_task_entropy_loss(log_ent_coef, log_prob, target_entropy=-2.0)[2].backward()
+    optimizer.step()
+    moved = log_ent_coef.detach() != 0
+    assert moved.tolist() == [False, False, True, False]
+
+
+def test_training_updates_every_beta_separately():
+    model = small_model()
+    model.learn(400)
+    betas = model.entropy_coefficients
+    assert betas.shape == (4,) and not th.allclose(betas, th.ones(4))
+    assert len(set(betas.tolist())) == 4
+
+
+# ----------------------------------------------------------------------------------------------- save/load
+@pytest.mark.parametrize("policy", POLICIES)
+def test_save_load_round_trip(policy, tmp_path):
+    model = small_model(policy, q_loss_clip=2000.0)
+    model.learn(300)
+    model.save(tmp_path / "model")
+    loaded = MTSAC.load(tmp_path / "model", env=None)
+    assert loaded.replay_buffer is None and loaded.n_tasks == 4
+    for key, value in all_params(model).items():
+        assert th.equal(value, loaded.policy.state_dict()[key]), key
+    for name in ("actor.optimizer", "critic.optimizer", "ent_coef_optimizer"):
+        saved = eval(f"model.{name}").state_dict()["state"]
+        restored = eval(f"loaded.{name}").state_dict()["state"]
+        for index in saved:
+            for k in saved[index]:
+                assert th.equal(saved[index][k], restored[index][k]), (name, k)
+    assert th.equal(model.log_ent_coef, loaded.log_ent_coef)
+    assert loaded.q_loss_clip == 2000.0
+    obs = make_mt_env("toy-conflict", seed=3).reset()
+    assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
+
+
+def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(tmp_path):
+    model = small_model()
+    model.learn(300)
+    model.save(tmp_path / "model")
+    model.save_replay_buffer(tmp_path / "buffer")
+    model.train(gradient_steps=2, batch_size=16)
+    expected = all_params(model)
+
+    resumed = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0))
+    resumed.load_replay_buffer(tmp_path / "buffer")
+    resumed.set_logger(model.logger)
+    resumed.train(gradient_steps=2, batch_size=16)
+    for key, value in expected.items():
+        assert th.equal(value, resumed.policy.state_dict()[key]), key
+
+
+def test_same_seed_same_run():
+    first = small_model(seed=7).learn(300)
+    second = small_model(seed=7).learn(300)
+    for key, value in all_params(first).items():
+        assert th.equal(value, second.policy.state_dict()[key]), key
+    third = small_model(seed=8)
+    third.learn(300)
+    assert not all(th.equal(v, third.policy.state_dict()[k]) for k, v in all_params(first).items())
+
+
+def test_loading_another_algorithm_or_task_count_fails_clearly(tmp_path):
+    small_model().save(tmp_path / "mtsac")
+    with pytest.raises(ValueError, match="saved by MTSAC"):
+        MTSACTE.load(tmp_path / "mtsac")
+    with pytest.raises(ValueError, match="trained on 4 tasks"):
+        MTSAC.load(tmp_path / "mtsac", env=make_mt_env("toy-conflict-6"))
+    env = make_mt_env("toy-conflict")
+    SAC("MlpPolicy", env, learning_starts=10, buffer_size=100).save(tmp_path / "sac")
+    with pytest.raises(ValueError, match="another algorithm"):
+        MTSAC.load(tmp_path / "sac")
+
+
+# ------------------------------------------------------------------------------------------------ bad input
+def test_rejects_env_without_one_sub_env_per_task():
+    fns = [lambda: make_mt_env("toy-conflict").envs[0]] * 3  # 3 sub-envs whose one-hot has 4 entries
+    env = DummyVecEnv(fns)
+    model = MTSAC("MlpPolicy", env, learning_starts=10, policy_kwargs=SMALL)
+    with pytest.raises(ValueError, match="one-hot"):
+        model.learn(10)
+
+
+def test_rejects_non_positive_clip_and_bad_critic_arch():
+    with pytest.raises(ValueError, match="q_loss_clip"):
+        small_model(q_loss_clip=0.0)
+    with pytest.raises(ValueError, match="critic_arch"):
+        small_model(critic_arch="bogus")
+
+
+def test_nan_loss_stops_training_and_names_the_loss():
+    model = small_model()
+    model.learn(200)
+    model.replay_buffer.rewards[:] = np.nan
+    with pytest.raises(FloatingPointError, match="critic loss"):
+        model.train(1, 16)
+
+
+# ------------------------------------------------------------------------------------------------- logging
+def test_logs_per_task_success_and_critic_loss(tmp_path):
+    from stable_baselines3.common.logger import configure
+
+    model = small_model()
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(800, log_interval=1)
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    assert "rollout/success/03_conflict" in header
+    assert "train/critic_loss/00_agree-0" in header
+    assert "rollout/success_rate" in header and "train/ent_coef" in header
+
+
+# ------------------------------------------------------------------------------------------------ learning
+@pytest.mark.parametrize("policy", POLICIES)
+@pytest.mark.parametrize("critic_arch", ["per_task", "shared"])
+def test_every_variant_learns_the_toy_conflict_env(policy, critic_arch):
+    """Budget: 12k env steps (3k vector steps, 4 tasks), 2x64 nets, L=64; stated bar: mean success >= 0.75."""
+    if critic_arch == "shared" and policy != "MlpPolicy":
+        pytest.skip("the shared critic is exercised with the shared actor")
+    env = make_mt_env("toy-conflict", seed=0)
+    kwargs = dict(net_arch=[64, 64])
+    if policy == "SoftModularPolicy":
+        kwargs["actor_kwargs"] = dict(n_layers=2, n_modules=2, module_size=32)
+    model = MTSAC(
+        policy, env, learning_starts=1000, batch_size=64, learning_rate=1e-3, critic_arch=critic_arch,
+        policy_kwargs=kwargs, seed=0,
+    )
+    model.learn(12_000)
+    result = evaluate_success(model, make_mt_env("toy-conflict", seed=100), episodes_per_task=10)
+    assert result.mean >= 0.75, result.as_dict()
+
+
+@pytest.mark.parametrize("policy", POLICIES)
+def test_mt10_smoke_run(policy):
+    env = make_mt_env("MT10", seed=0)
+    model = MTSAC(policy, env, learning_starts=100, batch_size=16, buffer_size=20_000, seed=0, q_loss_clip=2000.0)
+    model.learn(300)
+    assert model.num_timesteps == 300 and model._n_updates >= 15
+    assert model.replay_buffer.sample(4).observations.shape == (40, 49)
