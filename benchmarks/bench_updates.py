@@ -1,0 +1,203 @@
+"""Throughput of one gradient update (and env stepping) for SB3's SAC, every MTSAC variant and MTSACTE.
+
+Prints one JSON object. Updates run on synthetic replay data of N tasks x L transitions (39-d state + one-hot,
+4-d actions, 2x400 nets: the Meta-World setting); every ratio compares timings taken in the same run.
+
+    python benchmarks/bench_updates.py --n-tasks 10 20 50 --device cpu
+    python benchmarks/bench_updates.py --n-tasks 10 --env-steps 200   # + Meta-World MT10 vector steps/s
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+import torch as th
+from stable_baselines3 import SAC
+from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+from sb3_mtte import MTSAC, MTSACTE, __version__
+
+STATE_DIM, ACTION_DIM = 39, 4
+VARIANTS = {
+    "MTSAC-MT": ("MlpPolicy", {}),
+    "MTSAC-MT-shared-critic": ("MlpPolicy", {"critic_arch": "shared"}),
+    "MTSAC-MT-MH": ("MultiHeadPolicy", {}),
+    "MTSAC-soft-modular": ("SoftModularPolicy", {}),
+    "MTSAC-Ind": ("IndependentPolicy", {}),
+}
+
+
+class SyntheticTaskEnv(gym.Env):
+    """A sub-env with the Meta-World layout (39-d state + one-hot) and random observations."""
+
+    def __init__(self, index: int, n_tasks: int) -> None:
+        self.index, self.n_tasks, self.task_name = index, n_tasks, f"task{index}"
+        self.observation_space = gym.spaces.Box(-np.inf, np.inf, (STATE_DIM + n_tasks,), np.float32)
+        self.action_space = gym.spaces.Box(-1, 1, (ACTION_DIM,), np.float32)
+
+    def _obs(self) -> np.ndarray:
+        obs = np.zeros(STATE_DIM + self.n_tasks, np.float32)
+        obs[:STATE_DIM] = self.np_random.normal(size=STATE_DIM)
+        obs[STATE_DIM + self.index] = 1.0
+        return obs
+
+    def reset(self, seed=None, options=None):
+        super().reset(seed=seed)
+        return self._obs(), {}
+
+    def step(self, action):
+        return self._obs(), float(self.np_random.normal()), False, False, {"is_success": False}
+
+
+def synthetic_env(n_tasks: int) -> DummyVecEnv:
+    return DummyVecEnv([lambda i=i: SyntheticTaskEnv(i, n_tasks) for i in range(n_tasks)])
+
+
+def fill_buffer(model, n_rows: int) -> None:
+    """Fill the replay buffer with random transitions (one row per sub-env and step)."""
+    buffer = model.replay_buffer
+    n_envs = buffer.n_envs
+    rng = np.random.default_rng(0)
+    obs = rng.normal(size=(n_rows, n_envs, buffer.obs_shape[0])).astype(np.float32)
+    obs[..., STATE_DIM:] = 0
+    if obs.shape[-1] > STATE_DIM:
+        obs[..., STATE_DIM:] = np.eye(n_envs, obs.shape[-1] - STATE_DIM, dtype=np.float32)[None]
+    buffer.observations[:n_rows] = obs
+    buffer.next_observations[:n_rows] = obs
+    buffer.actions[:n_rows] = rng.uniform(-1, 1, size=buffer.actions[:n_rows].shape)
+    buffer.rewards[:n_rows] = rng.normal(size=(n_rows, n_envs))
+    buffer.pos = n_rows
+
+
+def median_seconds(fn: Callable[[], None], repeats: int, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        if th.cuda.is_available():
+            th.cuda.synchronize()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def quiet(model):
+    model.set_logger(Logger(folder=None, output_formats=[]))
+    return model
+
+
+def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) -> dict:
+    total_batch = n_tasks * batch_per_task
+    rows = 4 * batch_per_task
+    results: dict[str, float] = {}
+
+    sac = quiet(SAC("MlpPolicy", synthetic_env(n_tasks), policy_kwargs=dict(net_arch=[400, 400]),
+                    buffer_size=rows * n_tasks, device=device, seed=0))
+    fill_buffer(sac, rows)
+    results["SB3-SAC"] = median_seconds(lambda: sac.train(1, total_batch), repeats)
+
+    for label, (policy, kwargs) in VARIANTS.items():
+        model = quiet(MTSAC(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0, **kwargs))
+        fill_buffer(model, rows)
+        results[label] = median_seconds(lambda m=model: m.train(1, batch_per_task), repeats)
+
+    te = quiet(MTSACTE("MlpPolicy", synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0))
+    fill_buffer(te, rows)
+    te._last_iteration_start = 0  # measure the every-step update alone
+    te.num_timesteps = 0
+    results["MTSACTE-update"] = median_seconds(lambda: te.train(1, batch_per_task), repeats)
+    for estimator in ("virtual_step", "gradient_dot"):
+        te.nt_estimator, te.rep_gradient_steps = estimator, 1
+        results[f"MTSACTE-recompute-{estimator}"] = median_seconds(
+            lambda: te.update_representation(batch_per_task), max(3, repeats // 3), warmup=1
+        )
+
+    base = results["SB3-SAC"]
+    report = {
+        "n_tasks": n_tasks,
+        "total_batch": total_batch,
+        "seconds": {k: round(v, 5) for k, v in results.items()},
+        "updates_per_s": {k: round(1 / v, 2) for k, v in results.items() if "recompute" not in k},
+        "ratio_to_sb3_sac": {k: round(v / base, 3) for k, v in results.items()},
+        "recompute_over_mtsac_update": {
+            k: round(v / results["MTSAC-MT"], 2) for k, v in results.items() if "recompute" in k
+        },
+    }
+    return report
+
+
+def bench_env_steps(n_tasks: int, steps: int) -> float:
+    from sb3_mtte import make_mt_env
+
+    benchmark = {10: "MT10", 20: "MT20", 50: "MT50"}[n_tasks]
+    env = make_mt_env(benchmark, seed=0)
+    env.reset()
+    actions = np.zeros((n_tasks, ACTION_DIM), np.float32)
+    start = time.perf_counter()
+    for _ in range(steps):
+        env.step(actions)
+    return steps / (time.perf_counter() - start)
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n-tasks", type=int, nargs="+", default=[10, 20, 50])
+    parser.add_argument("--batch-per-task", type=int, default=128)
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--env-steps", type=int, default=0, help="vector steps of Meta-World to time (0: skip)")
+    parser.add_argument("--iteration-length", type=int, default=500)
+    parser.add_argument("--rep-gradient-steps", type=int, default=10)
+    args = parser.parse_args(argv)
+    device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+
+    report = {
+        "device": device,
+        "torch_threads": th.get_num_threads(),
+        "versions": {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()},
+        "results": [],
+    }
+    for n_tasks in args.n_tasks:
+        entry = bench_n_tasks(n_tasks, args.batch_per_task, device, args.repeats)
+        seconds = entry["seconds"]
+        recompute = seconds["MTSACTE-recompute-virtual_step"]
+        env_step = 0.0
+        if args.env_steps:
+            env_rate = bench_env_steps(n_tasks, args.env_steps)
+            entry["env_vector_steps_per_s"] = round(env_rate, 1)
+            entry["env_steps_per_s"] = round(env_rate * n_tasks, 1)
+            env_step = 1 / env_rate
+        # Per vector step at the default schedule: env step + update (+ R recomputations every H steps).
+        mtsac_step = env_step + seconds["MTSAC-MT"]
+        te_step = env_step + seconds["MTSACTE-update"] + args.rep_gradient_steps * recompute / args.iteration_length
+        entry["train_step_seconds"] = {
+            "SB3-SAC": round(env_step + seconds["SB3-SAC"], 5),
+            "MTSAC-MT": round(mtsac_step, 5),
+            "MTSACTE": round(te_step, 5),
+        }
+        entry["mtsacte_over_mtsac_per_vector_step"] = round(te_step / mtsac_step, 3)
+        report["results"].append(entry)
+    if len(args.n_tasks) > 1 and 10 in args.n_tasks:
+        first = next(r for r in report["results"] if r["n_tasks"] == 10)
+        report["recompute_scaling_vs_n10"] = {
+            str(r["n_tasks"]): {
+                est: round(r["seconds"][f"MTSACTE-recompute-{est}"] / first["seconds"][f"MTSACTE-recompute-{est}"], 2)
+                for est in ("virtual_step", "gradient_dot")
+            }
+            for r in report["results"]
+        }
+    print(json.dumps(report, indent=2))
+    return report
+
+
+if __name__ == "__main__":
+    main()
