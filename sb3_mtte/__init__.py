@@ -1,16 +1,20 @@
 """sb3-mtte: multi-task SAC with a task embedding network, and the MTSAC baselines, for Stable-Baselines3."""
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
+from sb3_mtte.envs import get_task_names, make_mt_env
 from sb3_mtte.mtsac import MTSAC
 from sb3_mtte.mtsacte import MTSACTE
 from sb3_mtte.version import __version__
 
-__all__ = ["MTSAC", "MTSACTE", "MultiTaskReplayBuffer", "__version__"]
-
-try:  # environments and evaluation
-    from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
-    from sb3_mtte.envs import get_task_names, make_mt_env
-
-    __all__ += ["MultiTaskEvalCallback", "SuccessResult", "evaluate_success", "get_task_names", "make_mt_env"]
-except ImportError:  # pragma: no cover
-    pass
+__all__ = [
+    "MTSAC",
+    "MTSACTE",
+    "MultiTaskEvalCallback",
+    "MultiTaskReplayBuffer",
+    "SuccessResult",
+    "__version__",
+    "evaluate_success",
+    "get_task_names",
+    "make_mt_env",
+]

@@ -61,7 +61,7 @@ from stable_baselines3.common.logger import (
     Logger,
     TensorBoardOutputFormat,
 )
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv, VecEnvWrapper
 
 from sb3_mtte import run_info as run_info_mod
 from sb3_mtte.common.checkpoints import read_checkpoint_data
@@ -249,16 +249,54 @@ class _TaskEnvFn:
             _TASK_CONTEXT.reset(token)
 
 
+class EpisodeReporter(VecEnvWrapper):
+    """Print every finished episode (task, return, success) and, on close, the success rate of each task."""
+
+    def __init__(self, venv: VecEnv) -> None:
+        super().__init__(venv)
+        from sb3_mtte.common.utils import get_task_names
+
+        self.task_names = get_task_names(venv)
+        self.successes: list[list[bool]] = [[] for _ in range(venv.num_envs)]
+
+    def reset(self) -> Any:
+        return self.venv.reset()
+
+    def step_wait(self) -> Any:
+        obs, rewards, dones, infos = self.venv.step_wait()
+        for i in np.flatnonzero(dones):
+            success = bool(infos[i].get("is_success", False))
+            self.successes[i].append(success)
+            episode = infos[i].get("episode", {})
+            print(
+                f"task {i:2d} {self.task_names[i]:<28} return {episode.get('r', float('nan')):9.2f}  "
+                f"length {episode.get('l', '-')!s:>4}  success {success}"
+            )
+        return obs, rewards, dones, infos
+
+    def close(self) -> None:
+        if any(self.successes):
+            print("Success rate per task (episodes finished):")
+            for name, results in zip(self.task_names, self.successes):
+                if results:
+                    print(f"  {name:<28} {100 * np.mean(results):5.1f}% ({len(results)})")
+        self.venv.close()
+
+
 class MultiTaskVecEnvFactory:
     """A VecEnv "class" for rl-zoo: given N constructors of the same registered env, sub-env i builds task i.
 
     :param n_tasks: number of tasks N; the zoo must ask for N sub-envs.
     :param seed: benchmark seed handed to every sub-env (goal variations).
     :param vec_env_cls: the VecEnv class that runs the sub-envs (rl-zoo's ``--vec-env`` choice).
+    :param report_episodes: wrap the env in :class:`EpisodeReporter` (``enjoy``).
     """
 
-    def __init__(self, n_tasks: int, seed: int = 0, vec_env_cls: type[VecEnv] = DummyVecEnv) -> None:
+    def __init__(
+        self, n_tasks: int, seed: int = 0, vec_env_cls: type[VecEnv] = DummyVecEnv, report_episodes: bool = False
+    ) -> None:
         self.n_tasks, self.seed, self.vec_env_cls = n_tasks, int(seed), vec_env_cls
+        self.report_episodes = report_episodes
 
     def __call__(self, env_fns: Sequence[Callable[[], gym.Env]], **vec_env_kwargs: Any) -> VecEnv:
         if len(env_fns) != self.n_tasks:
@@ -267,7 +305,8 @@ class MultiTaskVecEnvFactory:
                 f"sub-envs (use n_envs={self.n_tasks}, or --n-envs {self.n_tasks} for enjoy)."
             )
         fns = [_TaskEnvFn(fn, i, self.seed) for i, fn in enumerate(env_fns)]
-        return self.vec_env_cls(fns, **vec_env_kwargs)  # type: ignore[arg-type]
+        env = self.vec_env_cls(fns, **vec_env_kwargs)  # type: ignore[arg-type]
+        return EpisodeReporter(env) if self.report_episodes else env
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -338,6 +377,9 @@ def restart_envs(model: BaseAlgorithm, eval_env: VecEnv | None, seed: int, times
     """
     env = model.get_env()
     assert env is not None
+    buffer = getattr(model, "replay_buffer", None)
+    if hasattr(buffer, "reset_running_episodes"):
+        buffer.reset_running_episodes()  # episodes cut by the restart are not offered to the top-K store
     env.seed(restart_seed(seed, timesteps, 0))
     model._last_obs = env.reset()  # type: ignore[assignment]
     model._last_episode_starts = np.ones((env.num_envs,), dtype=bool)
@@ -596,6 +638,7 @@ class LaunchOptions:
     """Options of the launcher that rl-zoo's argument parser does not know."""
 
     resume_dir: str | None = None
+    exp_id: int | None = None
     flags_given: frozenset[str] = frozenset()
     keep_buffers: int = 1
     align_checkpoints: bool = True
@@ -633,12 +676,47 @@ def _build_exp_manager_class() -> type:
             if self.launch.resume_dir is not None:
                 self.save_path = os.path.normpath(self.launch.resume_dir)
                 self.params_path = f"{self.save_path}/{self.env_name}"
+                self._restore_run_args()
+            elif self.launch.exp_id is not None:
+                self.save_path = os.path.join(self.log_path, f"{self.env_name}_{self.launch.exp_id}")
+                self.params_path = f"{self.save_path}/{self.env_name}"
+                if (Path(self.save_path) / run_info_mod.RUN_INFO_FILE).is_file():
+                    raise FileExistsError(f"{self.save_path} already holds a run: use --resume {self.save_path}.")
             self.checkpoint: Checkpoint | None = None
             self.resumed = False  # from a checkpoint
             self.resume_step: int | None = None  # step the logs are trimmed to (0: resumed without checkpoint)
             self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
             self.eval_callback: ZooEvalCallback | None = None
             self._eval_env: VecEnv | None = None
+
+        def _restore_run_args(self) -> None:
+            """Resuming: take the run's own command-line settings (its ``args.yml``) unless given again now."""
+            import yaml
+
+            path = Path(self.params_path) / "args.yml"
+            if not path.is_file():
+                return
+            with open(path) as file:
+                saved = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
+            given = self.launch.flags_given
+            if "n_timesteps" not in given:
+                info = run_info_mod.read_run_info(self.save_path) or {}
+                self.n_timesteps = int(info.get("n_timesteps", saved.get("n_timesteps", -1)))
+            if "env_kwargs" not in given:
+                self.env_kwargs = dict(saved.get("env_kwargs") or {})
+            if "eval_env_kwargs" not in given:
+                self._eval_env_kwargs_args = saved.get("eval_env_kwargs")
+                self.eval_env_kwargs = dict(self._eval_env_kwargs_args or self.env_kwargs)
+            if "vec_env" not in given and saved.get("vec_env") == "subproc":
+                from stable_baselines3.common.vec_env import SubprocVecEnv
+
+                self.vec_env_class.vec_env_cls = SubprocVecEnv
+            if "log_interval" not in given and "log_interval" in saved:
+                self.log_interval = int(saved["log_interval"])
+            if "save_replay_buffer" not in given and saved.get("save_replay_buffer"):
+                self.save_replay_buffer = True
+            if "tensorboard_log" not in given and saved.get("tensorboard_log"):
+                self.tensorboard_dir = os.path.join(saved["tensorboard_log"], self.env_name)
 
         # ---- hyperparameters
         def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -886,6 +964,21 @@ def _run_dir_of(log_folder: str, algo: str, env_id: str, exp_id: int = 0) -> Pat
     return Path(log_folder) / algo / f"{env_name}_{exp_id}"
 
 
+_TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
+    "eval_freq": ("--eval-freq",),
+    "eval_episodes": ("--eval-episodes",),
+    "save_freq": ("--save-freq",),
+    "n_timesteps": ("-n", "--n-timesteps"),
+    "env_kwargs": ("--env-kwargs",),
+    "eval_env_kwargs": ("--eval-env-kwargs",),
+    "vec_env": ("--vec-env",),
+    "log_interval": ("--log-interval",),
+    "save_replay_buffer": ("--save-replay-buffer",),
+    "tensorboard_log": ("-tb", "--tensorboard-log"),
+}
+"""rl-zoo flags whose presence on the command line matters (file defaults, resumed runs' own settings)."""
+
+
 def train(argv: Sequence[str]) -> None:
     """``train``: rl-zoo's train with the launcher's additions (see the module docstring)."""
     import rl_zoo3.train
@@ -896,12 +989,14 @@ def train(argv: Sequence[str]) -> None:
     parser.add_argument("--no-tensorboard", action="store_true")
     parser.add_argument("--keep-buffers", type=int, default=1)
     parser.add_argument("--no-align-checkpoints", action="store_true")
+    parser.add_argument("--exp-id", type=int, default=None)
     ours, zoo_argv = parser.parse_known_args(list(argv))
     if _has_flag(zoo_argv, "-h", "--help"):
         print(
             "sb3_mtte options: --resume [RUN_DIR] (continue the latest checkpoint of RUN_DIR, default the latest "
-            "run of --algo/--env in -f), --no-progress, --no-tensorboard, --keep-buffers K (replay-buffer "
-            "checkpoints kept, 0 = all; default 1), --no-align-checkpoints.\nrl-zoo options:"
+            "run of --algo/--env in -f), --exp-id N (run folder <env>_N instead of the next free one), "
+            "--no-progress, --no-tensorboard, --keep-buffers K (replay-buffer checkpoints kept, 0 = all; "
+            "default 1), --no-align-checkpoints.\nrl-zoo options:"
         )
     algo = _flag_value(zoo_argv, "--algo") or "ppo"
     env_id = _flag_value(zoo_argv, "--env")
@@ -928,13 +1023,10 @@ def train(argv: Sequence[str]) -> None:
             zoo_argv += ["-conf", str(config)]
     if not ours.no_progress and not _has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
-    flags = {
-        "eval_freq": _has_flag(zoo_argv, "--eval-freq"),
-        "eval_episodes": _has_flag(zoo_argv, "--eval-episodes"),
-        "save_freq": _has_flag(zoo_argv, "--save-freq"),
-    }
+    flags = {dest: _has_flag(zoo_argv, *names) for dest, names in _TRACKED_FLAGS.items()}
     launch = LaunchOptions(
         resume_dir=resume_dir,
+        exp_id=ours.exp_id,
         flags_given=frozenset(k for k, given in flags.items() if given),
         keep_buffers=ours.keep_buffers,
         align_checkpoints=not ours.no_align_checkpoints,
@@ -1003,7 +1095,7 @@ def enjoy(argv: Sequence[str]) -> None:
         argv += ["--n-envs", str(n_tasks)]
     _, _, _, _, log_path = _locate_model(argv)
     info = run_info_mod.read_run_info(log_path) or {}
-    factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)))
+    factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), report_episodes=True)
     with (
         _patched(sys, "argv", [f"{sys.argv[0]} enjoy", *argv]),
         _patched(ExperimentManager, "default_vec_env_cls", factory),

@@ -5,8 +5,11 @@ from __future__ import annotations
 import io
 import json
 import pathlib
+import random
 import zipfile
 
+import numpy as np
+import torch as th
 from stable_baselines3.common.save_util import open_path
 
 
@@ -45,11 +48,6 @@ def check_checkpoint(path, algorithm_name: str, n_tasks: int | None) -> None:
 
 def capture_rng_state() -> dict:
     """The global RNG states (python, numpy, torch CPU and CUDA) that training draws from."""
-    import random
-
-    import numpy as np
-    import torch as th
-
     state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": th.get_rng_state()}
     if th.cuda.is_available():
         state["cuda"] = th.cuda.get_rng_state_all()
@@ -58,11 +56,6 @@ def capture_rng_state() -> dict:
 
 def restore_rng_state(state: dict) -> None:
     """Restore what :func:`capture_rng_state` captured."""
-    import random
-
-    import numpy as np
-    import torch as th
-
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     th.set_rng_state(state["torch"])

@@ -54,7 +54,9 @@ class MTSACTE(MTSAC):
     :param rep_learning_rate: learning rate delta of phi and the decoder (3e-4).
     :param iteration_length: H, vector steps per iteration (500, Meta-World's horizon).
     :param rep_gradient_steps: J^rep updates at the start of every iteration (10).
-    :param nt_estimator: ``"virtual_step"`` (exact Eq. 4-6) or ``"gradient_dot"`` (first order, Gram matrix).
+    :param nt_estimator: ``"virtual_step"``: mu and J^NT exactly by Eq. 4-6 and 11 (O(N^2) evaluations), or
+        ``"gradient_dot"``: both to first order in alpha (mu from the task-gradient Gram matrix, J^NT from the
+        mean task gradients; linear in N).
     :param use_vae: include the VAE term of Eq. 14.
     :param use_topk: draw representation batches from the top-K episodes (else from the main buffer).
     :param nt_chunk_size: ``vmap`` chunk over the N virtual parameter sets (None: all at once).
@@ -204,6 +206,7 @@ class MTSACTE(MTSAC):
                 step_size=self.nt_step_size,
                 c_vae=self.c_vae,
                 use_vae=self.use_vae,
+                estimator=self.nt_estimator,
             )
             check_finite("representation loss (J^rep)", loss)
             self._apply_gradients(enc_grads, dec_grads)

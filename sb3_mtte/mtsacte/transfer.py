@@ -11,7 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch as th
-from torch.func import functional_call, grad, vmap
+from torch.func import functional_call, grad, vjp, vmap
 
 from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
 from sb3_mtte.mtsacte.objectives import (
@@ -132,6 +132,25 @@ def transfer_matrix(
     return after - before.unsqueeze(0)
 
 
+def exact_nt_objective(objectives: TaskObjectives, theta: Params, z: th.Tensor, harmful: th.Tensor, step_size: float):
+    """Eq. 11-12 exactly: the mean over k in C \\ C_s of mean_i J_i(theta + alpha grad_theta J_k(theta, phi), phi)."""
+    grads = objectives.gradients(theta, z, harmful)
+    after = objectives.after_virtual_steps(virtual_parameters(theta, grads, step_size), z)
+    return negative_transfer_objective(after)
+
+
+def first_order_nt_objective(objectives: TaskObjectives, theta: Params, z: th.Tensor, harmful: th.Tensor, step_size: float):
+    """Eq. 11-12 to first order in alpha, linear in N: mean_i J_i(theta) + alpha * g_C . g_H, where g_C and g_H
+    are the mean task gradients over all tasks and over C \\ C_s (one forward pass, two backward passes)."""
+    values, pullback = vjp(lambda t: objectives.all_tasks(t, z), theta)
+    n_tasks = values.shape[0]
+    (mean_grad,) = pullback(th.full_like(values, 1.0 / n_tasks))
+    harmful_weights = th.zeros_like(values).index_fill(0, harmful, 1.0 / harmful.numel())
+    (harmful_grad,) = pullback(harmful_weights)
+    dot = sum((mean_grad[k] * harmful_grad[k]).sum() for k in theta)
+    return values.mean() + step_size * dot
+
+
 def representation_loss(
     objectives: TaskObjectives,
     encoder_params: Params,
@@ -140,19 +159,21 @@ def representation_loss(
     step_size: float,
     c_vae: float,
     use_vae: bool = True,
+    estimator: str = "virtual_step",
 ) -> th.Tensor:
     """-J^rep (Eq. 14) as a function of phi (encoder) and varphi (decoder); minimise it.
 
-    J^NT (Eq. 11-12) differentiates through theta^k = theta + alpha grad_theta J_k(theta, phi) (second order).
+    J^NT (Eq. 11-12) differentiates through theta^k = theta + alpha grad_theta J_k(theta, phi) (second order),
+    exactly (``virtual_step``) or to first order in alpha (``gradient_dot``).
     """
     z, mean, log_std = objectives.embedding(encoder_params)
     theta = objectives.theta()
-    if harmful_tasks.numel() > 0:
-        grads = objectives.gradients(theta, z, harmful_tasks)
-        after = objectives.after_virtual_steps(virtual_parameters(theta, grads, step_size), z)
-        j_nt = negative_transfer_objective(after)
-    else:
+    if harmful_tasks.numel() == 0:
         j_nt = z.new_zeros(())
+    elif estimator == "gradient_dot":
+        j_nt = first_order_nt_objective(objectives, theta, z, harmful_tasks, step_size)
+    else:
+        j_nt = exact_nt_objective(objectives, theta, z, harmful_tasks, step_size)
     if use_vae:
         one_hot = objectives.batch.obs[..., objectives.state.shape[-1] :]
         reconstruction = functional_call(objectives.policy.decoder, decoder_params, (th.cat([z, one_hot], dim=-1),))
