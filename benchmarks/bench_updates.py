@@ -157,6 +157,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--env-steps", type=int, default=0, help="vector steps of Meta-World to time (0: skip)")
     parser.add_argument("--iteration-length", type=int, default=500)
     parser.add_argument("--rep-gradient-steps", type=int, default=10)
+    parser.add_argument(
+        "--end-to-end", type=int, default=0, help="also time real MT10 learn() of MTSAC and MTSACTE over this many vector steps"
+    )
     args = parser.parse_args(argv)
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
 
@@ -185,6 +188,12 @@ def main(argv: list[str] | None = None) -> dict:
             "MTSACTE": round(te_step, 5),
         }
         entry["mtsacte_over_mtsac_per_vector_step"] = round(te_step / mtsac_step, 3)
+        if env_step:
+            entry["train_env_steps_per_s"] = {
+                label: round(n_tasks / (env_step + seconds[label]), 1)
+                for label in ("SB3-SAC", *VARIANTS, "MTSACTE-update")
+            }
+            entry["train_env_steps_per_s"]["MTSACTE"] = round(n_tasks / te_step, 1)
         report["results"].append(entry)
     if len(args.n_tasks) > 1 and 10 in args.n_tasks:
         first = next(r for r in report["results"] if r["n_tasks"] == 10)
@@ -195,8 +204,30 @@ def main(argv: list[str] | None = None) -> dict:
             }
             for r in report["results"]
         }
+    if args.end_to_end:
+        report["end_to_end_mt10"] = bench_end_to_end(args.end_to_end, device)
     print(json.dumps(report, indent=2))
     return report
+
+
+def bench_end_to_end(vector_steps: int, device: str) -> dict:
+    """Wall time of learn() on MT10 after learning starts: env stepping, updates and the every-H work included."""
+    from sb3_mtte import make_mt_env
+
+    seconds = {}
+    for label, cls in (("MTSAC-MT", MTSAC), ("MTSACTE", MTSACTE)):
+        env = make_mt_env("MT10", seed=0)
+        model = quiet(cls("MlpPolicy", env, learning_starts=2560, buffer_size=200_000, device=device, seed=0))
+        model.learn(2560 + 10 * 10)  # random warm-up, then a few updates (and MTSACTE's first recomputation)
+        start = time.perf_counter()
+        model.learn(vector_steps * 10, reset_num_timesteps=False)
+        seconds[label] = time.perf_counter() - start
+    return {
+        "vector_steps": vector_steps,
+        "seconds": {k: round(v, 2) for k, v in seconds.items()},
+        "env_steps_per_s": {k: round(vector_steps * 10 / v, 1) for k, v in seconds.items()},
+        "mtsacte_over_mtsac": round(seconds["MTSACTE"] / seconds["MTSAC-MT"], 3),
+    }
 
 
 if __name__ == "__main__":
