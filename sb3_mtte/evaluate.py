@@ -135,4 +135,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
 
 if __name__ == "__main__":
-    main()
+    from sb3_mtte.evaluate import main as _main  # the imported module, so that its objects pickle by reference
+
+    _main()

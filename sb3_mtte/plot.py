@@ -678,4 +678,6 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main()
+    from sb3_mtte.plot import main as _main  # the imported module, so that its objects pickle by reference
+
+    _main()

@@ -113,7 +113,7 @@ def _sample_mtsacte_params(trial: Any, n_actions: int, n_envs: int, additional_a
     """Optuna search space of MTSACTE: the MTSAC one plus alpha_nt, c_vae and the J^rep steps per iteration."""
     _sample_mtsac_params(trial, n_actions, n_envs, additional_args)
     trial.suggest_float("nt_step_size", 1e-4, 1e-2, log=True)
-    trial.suggest_float("c_vae", 0.1, 10.0, log=True)
+    trial.suggest_float("c_vae", 1e-3, 1.0, log=True)
     trial.suggest_categorical("rep_gradient_steps", [1, 5, 10, 20])
     return _convert_mtsac_params(trial.params)
 
@@ -175,6 +175,7 @@ def env_id_n_tasks(env_id: str) -> int:
     return len(benchmark_task_names(split_env_id(env_id)[0]))
 
 
+_ENTRY_POINT = "sb3_mtte.zoo:make_task_env"
 _TASK_CONTEXT: contextvars.ContextVar[tuple[int, int] | None] = contextvars.ContextVar("sb3_mtte_task", default=None)
 
 
@@ -212,7 +213,7 @@ def register_env_id(env_id: str) -> bool:
     :return: True when registered now or before, False when ``env_id`` is no benchmark of this package.
     """
     if env_id in gym.envs.registry:
-        return gym.envs.registry[env_id].entry_point == f"{__name__}:make_task_env"
+        return gym.envs.registry[env_id].entry_point == _ENTRY_POINT
     benchmark = split_env_id(env_id)[0]
     try:
         benchmark_task_names(benchmark)
@@ -220,7 +221,7 @@ def register_env_id(env_id: str) -> bool:
         return False
     gym.register(
         id=env_id,
-        entry_point=f"{__name__}:make_task_env",
+        entry_point=_ENTRY_POINT,
         kwargs={"benchmark": benchmark},
         disable_env_checker=True,
     )
@@ -468,6 +469,9 @@ class MultiTaskCheckpointCallback(BaseCallback):
             "replay_buffer": buffer_path is not None,
             "time": run_info_mod.now(),
         }
+        task_success = getattr(self.model, "_task_success", None)
+        if task_success is not None:  # per-task rollout success window (logging), not saved with the model
+            meta["task_success"] = [[float(v) for v in window] for window in task_success]
         tmp = paths["meta"].with_name(f".tmp_{paths['meta'].name}")
         tmp.write_text(json.dumps(meta, indent=2) + "\n")
         os.replace(tmp, paths["meta"])
@@ -799,6 +803,9 @@ def _build_exp_manager_class() -> type:
         def _setup_resume(self) -> tuple[BaseAlgorithm, dict[str, Any]]:
             run_dir = Path(self.save_path)
             self.checkpoint = find_latest_checkpoint(run_dir)
+            final = self._final_checkpoint(run_dir)
+            if final is not None and (self.checkpoint is None or final.timesteps > self.checkpoint.timesteps):
+                self.checkpoint = final
             step = self.checkpoint.timesteps if self.checkpoint is not None else 0
             self.resume_step = step
             print(f"Resuming {run_dir} from " + (f"{self.checkpoint.model.name}" if self.checkpoint else "scratch"))
@@ -825,11 +832,29 @@ def _build_exp_manager_class() -> type:
             if self.checkpoint.replay_buffer is not None:
                 model.load_replay_buffer(self.checkpoint.replay_buffer)
             restart_envs(model, self._eval_env, self.seed, step)
+            if "task_success" in self.checkpoint.meta:
+                from collections import deque
+
+                window = getattr(model, "_stats_window_size", 100)
+                model._task_success = [deque(v, maxlen=window) for v in self.checkpoint.meta["task_success"]]
             self.resumed = True
             run_info_mod.append_resume(
                 run_dir, checkpoint=self.checkpoint.model.name, timesteps=step, meta=self.checkpoint.meta
             )
             return model, saved
+
+        def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
+            if self.launch.resume_dir is None:  # a resumed run keeps its own config.yml, args.yml and command
+                super()._save_config(saved_hyperparams)
+
+        def _final_checkpoint(self, run_dir: Path) -> Checkpoint | None:
+            """The final model and replay buffer of a run that finished (``--save-replay-buffer``), if any."""
+            info = run_info_mod.read_run_info(run_dir) or {}
+            model, buffer = run_dir / f"{self.env_name}.zip", run_dir / "replay_buffer.pkl"
+            if not (info.get("finished") and model.is_file() and buffer.is_file()):
+                return None
+            steps = int(read_checkpoint_data(model).get("num_timesteps", 0))
+            return Checkpoint(steps, model, buffer, {"timesteps": steps, "final_model": True})
 
         def _write_run_info(self, model: BaseAlgorithm, saved: dict[str, Any]) -> None:
             from sb3_mtte.common.utils import get_task_names
@@ -852,6 +877,11 @@ def _build_exp_manager_class() -> type:
                 n_timesteps=self.n_timesteps,
                 run_dir=os.path.abspath(self.save_path),
                 zoo_args={k: run_info_mod.to_jsonable(v) for k, v in sorted(vars(self.args).items())},
+                launcher={
+                    "tensorboard": self.launch.tensorboard,
+                    "keep_buffers": self.launch.keep_buffers,
+                    "align_checkpoints": self.launch.align_checkpoints,
+                },
             )
             run_info_mod.write_run_info(self.save_path, info)
 
@@ -986,11 +1016,12 @@ def train(argv: Sequence[str]) -> None:
     parser = argparse.ArgumentParser(prog="python -m sb3_mtte.zoo train", add_help=False)
     parser.add_argument("--resume", nargs="?", const="", default=None, metavar="RUN_DIR")
     parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--no-tensorboard", action="store_true")
-    parser.add_argument("--keep-buffers", type=int, default=1)
-    parser.add_argument("--no-align-checkpoints", action="store_true")
+    parser.add_argument("--no-tensorboard", action="store_true", default=None)
+    parser.add_argument("--keep-buffers", type=int, default=None)
+    parser.add_argument("--no-align-checkpoints", action="store_true", default=None)
     parser.add_argument("--exp-id", type=int, default=None)
     ours, zoo_argv = parser.parse_known_args(list(argv))
+    saved_launcher: dict[str, Any] = {}
     if _has_flag(zoo_argv, "-h", "--help"):
         print(
             "sb3_mtte options: --resume [RUN_DIR] (continue the latest checkpoint of RUN_DIR, default the latest "
@@ -998,8 +1029,15 @@ def train(argv: Sequence[str]) -> None:
             "--no-progress, --no-tensorboard, --keep-buffers K (replay-buffer checkpoints kept, 0 = all; "
             "default 1), --no-align-checkpoints.\nrl-zoo options:"
         )
+    if ours.resume:  # --resume RUN_DIR: the run's own algorithm and env unless given
+        info = run_info_mod.read_run_info(ours.resume) or {}
+        for flag, key in (("--algo", "algo"), ("--env", "env_id")):
+            if not _has_flag(zoo_argv, flag) and key in info:
+                zoo_argv += [flag, str(info[key])]
     algo = _flag_value(zoo_argv, "--algo") or "ppo"
     env_id = _flag_value(zoo_argv, "--env")
+    if env_id is None and not _has_flag(zoo_argv, "-h", "--help"):
+        raise SystemExit(f"--env is required: {benchmark_help()}")
     if env_id is not None and not register_env_id(env_id):
         raise SystemExit(f"{env_id!r} is not a benchmark of sb3_mtte: {benchmark_help()}")
     register_algos()
@@ -1007,11 +1045,17 @@ def train(argv: Sequence[str]) -> None:
     resume_dir = None
     if ours.resume is not None:
         if env_id is None:
-            raise SystemExit("--resume needs --algo and --env.")
+            raise SystemExit("--resume needs --algo and --env (or a run folder: --resume RUN_DIR).")
         resume_dir = Path(ours.resume) if ours.resume else _run_dir_of(log_folder, algo, env_id)
         info = run_info_mod.read_run_info(resume_dir) or {}
+        if info and (info.get("algo"), info.get("env_id")) != (algo, env_id):
+            raise SystemExit(
+                f"{resume_dir} is a run of --algo {info.get('algo')} --env {info.get('env_id')}, "
+                f"not --algo {algo} --env {env_id}."
+            )
         if not _has_flag(zoo_argv, "--seed") and "seed" in info:
             zoo_argv += ["--seed", str(info["seed"])]
+        saved_launcher = dict(info.get("launcher") or {})
         if ours.resume and not _has_flag(zoo_argv, "-f", "--log-folder"):
             zoo_argv += ["-f", str(resume_dir.parent.parent)]
         resume_dir = str(resume_dir)
@@ -1028,9 +1072,15 @@ def train(argv: Sequence[str]) -> None:
         resume_dir=resume_dir,
         exp_id=ours.exp_id,
         flags_given=frozenset(k for k, given in flags.items() if given),
-        keep_buffers=ours.keep_buffers,
-        align_checkpoints=not ours.no_align_checkpoints,
-        tensorboard=not ours.no_tensorboard,
+        keep_buffers=ours.keep_buffers if ours.keep_buffers is not None else saved_launcher.get("keep_buffers", 1),
+        align_checkpoints=(
+            not ours.no_align_checkpoints
+            if ours.no_align_checkpoints is not None
+            else saved_launcher.get("align_checkpoints", True)
+        ),
+        tensorboard=not ours.no_tensorboard
+        if ours.no_tensorboard is not None
+        else saved_launcher.get("tensorboard", True),
     )
     manager_cls = _exp_manager_class()
 
@@ -1144,6 +1194,7 @@ def record_video(argv: Sequence[str]) -> list[Path]:
     parser.add_argument("--device", default="auto")
     parser.add_argument("--fps", type=int, default=None)
     parser.add_argument("--tile", action="store_true", help="also write one video of all tasks side by side")
+    parser.add_argument("--flip", action="store_true", help="flip frames vertically (Meta-World's corner cameras)")
     args = parser.parse_args(list(argv))
     if not os.environ.get("DISPLAY") and "MUJOCO_GL" not in os.environ:
         os.environ["MUJOCO_GL"] = "egl"
@@ -1191,6 +1242,8 @@ def record_video(argv: Sequence[str]) -> list[Path]:
             images = env.get_images()
             if any(image is None for image in images):
                 raise RuntimeError("The env returned no image: it cannot render in rgb_array mode here.")
+            if args.flip:
+                images = [image[::-1] for image in images]
             for i in np.flatnonzero(episodes < args.episodes):
                 frames[i].append(images[i])
             if args.tile:
@@ -1234,7 +1287,7 @@ def _saved_env_kwargs(log_path: str, env_id: str) -> dict[str, Any]:
 COMMANDS = {"train": train, "enjoy": enjoy, "record_video": record_video}
 
 
-def main(argv: Sequence[str] | None = None) -> None:
+def main(argv: Sequence[str] | None = None) -> Any:
     """``python -m sb3_mtte.zoo {train,enjoy,record_video} ...``"""
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in COMMANDS:
@@ -1243,7 +1296,7 @@ def main(argv: Sequence[str] | None = None) -> None:
     register_standard_env_ids()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*render_mode.*")
-        COMMANDS[argv[0]](argv[1:])
+        return COMMANDS[argv[0]](argv[1:])
 
 
 __all__ = [
@@ -1274,4 +1327,7 @@ __all__ = [
 ]
 
 if __name__ == "__main__":
-    main()
+    # run the imported module, not this __main__ copy: env constructors must pickle by reference (subprocesses)
+    from sb3_mtte.zoo import main as _main
+
+    _main()

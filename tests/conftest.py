@@ -134,17 +134,17 @@ def make_episode_env(n_tasks: int = 4, n_envs: int | None = None, **kwargs: Any)
 
 def small_model_kwargs(**overrides: Any) -> dict[str, Any]:
     """Keyword arguments of a small, fast MTSACTE on CPU."""
-    kwargs: dict[str, Any] = dict(
-        learning_starts=40,
-        batch_size=8,
-        buffer_size=4_000,
-        top_k=3,
-        iteration_length=10,
-        rep_gradient_steps=2,
-        policy_kwargs=dict(net_arch=[16, 16], z_dim=3),
-        seed=0,
-        device="cpu",
-    )
+    kwargs: dict[str, Any] = {
+        "learning_starts": 40,
+        "batch_size": 8,
+        "buffer_size": 4_000,
+        "top_k": 3,
+        "iteration_length": 10,
+        "rep_gradient_steps": 2,
+        "policy_kwargs": {"net_arch": [16, 16], "z_dim": 3},
+        "seed": 0,
+        "device": "cpu",
+    }
     kwargs.update(overrides)
     return kwargs
 

@@ -17,8 +17,8 @@ def clipped_soft_q_loss(q_values: th.Tensor, target_q: th.Tensor, clip: float | 
     :return: ``(N,)`` loss of each task, summed over the twin critics.
     """
     per_sample = 0.5 * (q_values - target_q.unsqueeze(0)).pow(2)
-    if clip is not None:
-        per_sample = per_sample.clamp(0.0, clip)
+    if clip is not None:  # a non-finite loss stays non-finite, so the finiteness check still stops training
+        per_sample = th.where(th.isfinite(per_sample), per_sample.clamp(0.0, clip), per_sample)
     return per_sample.mean(dim=-1).sum(dim=0)
 
 

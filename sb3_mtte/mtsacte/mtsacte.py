@@ -170,6 +170,18 @@ class MTSACTE(MTSAC):
         self.encoder = self.policy.encoder
         self.decoder = self.policy.decoder
 
+    def _setup_learn(
+        self,
+        total_timesteps: int,
+        callback: MaybeCallback = None,
+        reset_num_timesteps: bool = True,
+        tb_log_name: str = "run",
+        progress_bar: bool = False,
+    ):
+        if reset_num_timesteps:
+            self._last_iteration_start = None
+        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
+
     # --------------------------------------------------------------------------------------------- training
     def task_weights_for_policy(self) -> th.Tensor:
         """w of Eq. 8 from the last recomputation (uniform before the first)."""

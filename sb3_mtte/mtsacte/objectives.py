@@ -47,7 +47,8 @@ def select_benign_tasks(mu: th.Tensor, n_select: int) -> th.Tensor:
 def task_weights(mu: th.Tensor) -> th.Tensor:
     """Eq. 8: w_i = exp(N - mu_i) / sum_j exp(N - mu_j)."""
     n_tasks = mu.shape[-1]
-    return th.softmax(n_tasks - mu.to(th.get_default_dtype()), dim=-1)
+    mu = mu if mu.is_floating_point() else mu.to(th.get_default_dtype())
+    return th.softmax(n_tasks - mu, dim=-1)
 
 
 def policy_objective(task_objectives: th.Tensor, weights: th.Tensor) -> th.Tensor:
