@@ -3,9 +3,14 @@
 Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
 
     python -m sb3_mtte.zoo train --algo mtsacte --env MT10 [-conf zoo_configs/mtsacte.yml] [rl-zoo flags]
-    python -m sb3_mtte.zoo train --algo mtsacte --env MT10 --resume [RUN_DIR]
+    python -m sb3_mtte.zoo train --algo mtsacte --env MT10 --resume      # latest run of mtsacte/MT10 in -f
+    python -m sb3_mtte.zoo train --resume logs/mtsacte/MT10_1            # a given run folder
     python -m sb3_mtte.zoo enjoy --algo mtsacte --env MT10 -f logs --no-render -n 2000
-    python -m sb3_mtte.zoo record_video --algo mtsacte --env MT10 -f logs [-o VIDEO_DIR] [--episodes 1]
+    python -m sb3_mtte.zoo record_video --algo mtsacte --env MT10 -f logs [-o VIDEO_DIR] [--episodes 1] [--tile]
+
+Launcher options of ``train`` (besides rl-zoo's): ``--resume [RUN_DIR]``, ``--exp-id N`` (run folder ``<env>_N``),
+``--no-progress``, ``--no-tensorboard``, ``--keep-buffers K`` (replay-buffer checkpoints kept, default 1, 0 = all),
+``--no-align-checkpoints`` (save at the step reached, not at the next end of episodes).
 
 What the launcher adds to rl-zoo3 (everything else is rl-zoo's ``ExperimentManager``: hyperparameter files and
 ``-params`` overrides, run folders ``<log-folder>/<algo>/<env>_<id>/``, ``config.yml``/``args.yml``, optuna,
@@ -26,6 +31,8 @@ What the launcher adds to rl-zoo3 (everything else is rl-zoo's ``ExperimentManag
 * Logging into the run folder: ``progress.csv``, tensorboard events (``-tb DIR`` moves them to
   ``DIR/<env>/<algo>_<run>``), ``negative_transfer.jsonl`` (MTSACTE) and ``run_info.json`` (versions, seed,
   git commit; :mod:`sb3_mtte.run_info`). Progress bar on (``--no-progress`` turns it off).
+* ``enjoy`` is rl-zoo's, with ``--n-envs`` set to the task count and every finished episode printed (task,
+  return, success); ``record_video`` writes one video per task (``--tile``: also all tasks side by side).
 * Checkpoints (``--save-freq`` in total env steps): model, replay buffer (with the top-K store) and a marker,
   taken after the update of a step and at the end of an episode; ``--resume`` continues the latest complete
   checkpoint of a run folder to the run's ``n_timesteps``, and trims the logs written after it. At every

@@ -1,0 +1,284 @@
+"""Tests of the experiment tools: evaluate CLI, plots and Table 1, run metadata, Ray sweep."""
+
+from __future__ import annotations
+
+import csv
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sb3_mtte import evaluate, plot, sweep
+from sb3_mtte.common.utils import task_log_key
+from sb3_mtte.run_info import (
+    algo_label,
+    append_resume,
+    collect_run_info,
+    git_info,
+    package_versions,
+    read_run_info,
+    update_run_info,
+    write_run_info,
+)
+from sb3_mtte.zoo import main as zoo_main
+
+ENV = "toy-conflict"
+TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
+
+
+@pytest.fixture(scope="module")
+def zoo_runs(tmp_path_factory):
+    """Two real tiny runs (MTSACTE and SAC-MT) in the zoo layout."""
+    root = tmp_path_factory.mktemp("runs")
+    for algo in ("mtsacte", "mtsac_mt"):
+        zoo_main(
+            [
+                "train",
+                "--algo",
+                algo,
+                "--env",
+                ENV,
+                "-f",
+                str(root),
+                "-n",
+                "400",
+                "--eval-freq",
+                "200",
+                "--eval-episodes",
+                "2",
+                "--no-progress",
+                "--verbose",
+                "0",
+                "--seed",
+                "1",
+                "-params",
+                "learning_starts:100",
+            ]
+        )
+    return root
+
+
+# ================================================================================================ run_info
+def test_run_info_roundtrip(tmp_path):
+    info = collect_run_info(algo="mtsac_clip", env_id="MT10-smoke", benchmark="MT10", seed=4, hyperparams={"a": 1})
+    assert info["label"] == "SAC-MT-with-clip" and info["seed"] == 4 and not info["finished"]
+    assert {"python", "sb3_mtte", "torch", "stable_baselines3", "gymnasium", "metaworld", "numpy"} <= set(
+        info["versions"]
+    )
+    write_run_info(tmp_path, info)
+    update_run_info(tmp_path, finished=True, timesteps=np.int64(7))
+    append_resume(tmp_path, checkpoint="rl_model_5_steps.zip", timesteps=5)
+    loaded = read_run_info(tmp_path)
+    assert loaded["finished"] and loaded["timesteps"] == 7 and loaded["resumes"][0]["timesteps"] == 5
+    assert read_run_info(tmp_path / "nothing") is None
+    assert package_versions()["sb3_mtte"]
+    assert set(git_info()) == {"commit", "branch", "dirty"}
+
+
+def test_algo_labels():
+    assert algo_label("mtsacte_novae") == "Ours-VAE"
+    assert algo_label("mtsac", {"policy": "MultiHeadPolicy"}) == "SAC-MT-MH"
+    assert algo_label("mtsac", {"policy": "MlpPolicy", "q_loss_clip": 2000}) == "SAC-MT-with-clip"
+    assert algo_label("mtsacte", {"q_loss_clip": None}) == "Ours"  # the row key wins
+    assert algo_label("mtsacte_x", {"use_topk": False}) == "Ours-bestbatch"
+
+
+# ================================================================================================ evaluate
+def test_evaluate_cli_writes_json(zoo_runs, capsys):
+    run = zoo_runs / "mtsacte" / f"{ENV}_1"
+    record = evaluate.main([str(run / f"{ENV}.zip"), "--episodes", "3"])
+    out = capsys.readouterr().out
+    assert "| mean" in out and "conflict" in out
+    saved = json.loads((run / "success.json").read_text())
+    assert saved == record
+    assert saved["task_names"] == TASKS and len(saved["success_rate"]) == 4
+    assert saved["algorithm"] == "MTSACTE" and saved["label"] == "Ours" and saved["env_id"] == ENV
+    assert saved["seed"] == 1 and saved["episodes_per_task"] == 3 and saved["timesteps"] == 400
+    assert 0.0 <= saved["mean"] <= 1.0
+    # another file of the run, another json; explicit env and seed
+    evaluate.main([str(run / "best_model.zip"), "--env", ENV, "--seed", "0", "--episodes", "1"])
+    assert json.loads((run / "success_best_model.json").read_text())["algorithm"] == "MTSACTE"
+    # the baseline class is detected from its zip
+    evaluate.main([str(zoo_runs / "mtsac_mt" / f"{ENV}_1" / f"{ENV}.zip"), "--episodes", "1"])
+    assert json.loads((zoo_runs / "mtsac_mt" / f"{ENV}_1" / "success.json").read_text())["algorithm"] == "MTSAC"
+
+
+def test_evaluate_needs_an_env_without_run_info(tmp_path, zoo_runs):
+    model = tmp_path / "model.zip"
+    model.write_bytes((zoo_runs / "mtsac_mt" / f"{ENV}_1" / f"{ENV}.zip").read_bytes())
+    with pytest.raises(ValueError, match="--env"):
+        evaluate.main([str(model)])
+    evaluate.main([str(model), "--env", ENV, "--episodes", "1", "--out", str(tmp_path / "r.json")])
+    assert json.loads((tmp_path / "r.json").read_text())["benchmark"] == ENV
+
+
+# ================================================================================================ plot
+def _write_progress(path: Path, rows: list[dict[str, float]]) -> None:
+    keys = sorted({key for row in rows for key in row})
+    with open(path, "w", newline="") as file:
+        writer = csv.DictWriter(file, keys)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def make_synthetic_run(root: Path, algo: str, label: str, seed: int, final: float, nt: bool, tb: bool = False) -> Path:
+    """A run folder as the zoo writes it, with made-up curves (MT10-sized: 10 tasks, 500-step episodes)."""
+    names = [f"task{i}-v3" for i in range(10)]
+    run = root / algo / f"MT10_{seed + 1}"
+    run.mkdir(parents=True)
+    info = {"algo": algo, "label": label, "env_id": "MT10", "benchmark": "MT10", "seed": seed, "n_tasks": 10}
+    write_run_info(run, {**info, "task_names": names, "episode_length": 500})
+    steps = np.arange(1, 11) * 100_000
+    rng = np.random.default_rng(seed)
+    success = np.clip(np.linspace(0, final, 10)[:, None] + 0.05 * rng.standard_normal((10, 10)), 0, 1)
+    np.savez(run / "evaluations.npz", timesteps=steps, success_rate=success, task_names=np.asarray(names))
+    rows = []
+    for t in range(1, 41):
+        row = {"time/total_timesteps": t * 25_000, "rollout/success_rate": t / 40}
+        for i, name in enumerate(names):
+            row[task_log_key("train/critic_loss", i, name)] = float(1e3 * (1 + i) * np.exp(-t / 20))
+            row[task_log_key("rollout/success", i, name)] = t / 40
+        rows.append(row)
+    if tb:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer = SummaryWriter(str(run))
+        for row in rows:
+            for key, value in row.items():
+                if key != "time/total_timesteps":
+                    writer.add_scalar(key, value, row["time/total_timesteps"])
+        writer.close()
+    else:
+        _write_progress(run / "progress.csv", rows)
+    if nt:
+        with open(run / "negative_transfer.jsonl", "w") as file:
+            for r in range(60):
+                mu = rng.integers(0, 10, size=10)
+                selected = np.zeros(10, dtype=int)
+                selected[np.argsort(mu, kind="stable")[:5]] = 1
+                weights = np.exp(10 - mu) / np.exp(10 - mu).sum()
+                matrix = rng.standard_normal((10, 10))
+                record = {"timesteps": (r + 1) * 5000 * 3, "mu": mu.tolist(), "selected": selected.tolist()}
+                record.update(weights=weights.tolist(), transfer_matrix=matrix.tolist())
+                file.write(json.dumps(record) + "\n")
+    return run
+
+
+def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
+    runs = tmp_path / "runs"
+    for seed, final in ((0, 0.8), (1, 0.9)):
+        make_synthetic_run(runs, "mtsacte", "Ours", seed, final, nt=True)
+        make_synthetic_run(runs, "mtsac_mt", "SAC-MT", seed, final - 0.2, nt=False, tb=seed == 1)
+    make_synthetic_run(runs, "mtsacte_novae", "Ours-VAE", 0, 0.5, nt=True)
+    (runs / "mtsacte" / "MT10_1" / "success.json").write_text(json.dumps({"mean": 0.85}))
+    out = tmp_path / "docs"
+    written = plot.main([str(runs), "--out", str(out), "--tasks", "task0", "task3", "--matrix-times", "1e4", "9e4"])
+    names = sorted(p.name for p in written)
+    expected = {
+        "success_MT10.png",
+        "ablation_MT10.png",
+        "per_task_MT10.png",
+        "bellman_MT10_Ours.png",
+        "bellman_MT10_SAC-MT.png",
+        "bellman_MT10_Ours-VAE.png",
+        "bellman_avg_MT10.png",
+        "train_frequency_MT10_Ours.png",
+        "nt_MT10_Ours.png",
+        "nt_matrix_MT10_Ours.png",
+        "train_frequency_MT10_Ours-VAE.png",
+        "table1.md",
+    }
+    assert expected <= set(names), expected - set(names)
+    for path in written:
+        assert path.stat().st_size > (1000 if path.suffix == ".png" else 100), path
+    table = (out / "table1.md").read_text()
+    assert table in capsys.readouterr().out
+    ours_table = table.split("The paper's")[0]
+    rows = {line.split("|")[1].strip(): line for line in ours_table.splitlines() if line.startswith("| ")}
+    ours = np.mean([0.85, final_eval(runs / "mtsacte" / "MT10_2")])
+    assert f"{100 * ours:.1f} ±" in rows["Ours"] and "(n=2)" in rows["Ours"]
+    assert "(n=2)" in rows["SAC-MT"] and "(n=1)" in rows["Ours-VAE"]
+    assert "89.3%" in table  # the paper's row for reference
+    assert list(rows).index("SAC-MT") < list(rows).index("Ours") < list(rows).index("Ours-VAE")
+
+
+def final_eval(run: Path) -> float:
+    with np.load(run / "evaluations.npz") as data:
+        return float(data["success_rate"][-1].mean())
+
+
+def test_tensorboard_fallback_matches_csv(tmp_path):
+    csv_run = plot.load_run(make_synthetic_run(tmp_path / "a", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False))
+    tb_run = plot.load_run(make_synthetic_run(tmp_path / "b", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False, tb=True))
+    key = task_log_key("train/critic_loss", 3, "task3-v3")
+    assert np.array_equal(csv_run.scalars[key][0], tb_run.scalars[key][0])
+    assert np.allclose(csv_run.scalars[key][1], tb_run.scalars[key][1], rtol=1e-6)
+
+
+def test_train_frequency_window():
+    run = plot.Run(Path("."), {"n_tasks": 2, "task_names": ["a", "b"]})
+    run.nt_records = [{"timesteps": 10 * (j + 1), "selected": [j % 2, 1]} for j in range(6)]
+    steps, freq = plot.train_frequency(run, window_steps=20)  # the last 2 recomputations
+    assert list(steps) == [10, 20, 30, 40, 50, 60]
+    assert np.allclose(freq[:, 0], [0, 0.5, 0.5, 0.5, 0.5, 0.5]) and np.allclose(freq[:, 1], 1)
+
+
+def test_mean_std_over_seeds_interpolates():
+    x, mean, std = plot.mean_std([(np.array([0, 2]), np.array([0.0, 2.0])), (np.array([0, 1, 2]), np.ones(3))])
+    assert list(x) == [0, 1, 2] and np.allclose(mean, [0.5, 1.0, 1.5]) and np.allclose(std, [0.5, 0.0, 0.5])
+
+
+def test_plot_real_tiny_runs(zoo_runs, tmp_path):
+    written = plot.main([str(zoo_runs), "--out", str(tmp_path)])
+    names = {p.name for p in written}
+    assert {f"success_{ENV}.png", f"per_task_{ENV}.png", f"nt_matrix_{ENV}_Ours.png", "table1.md"} <= names
+    assert {f"bellman_{ENV}_SAC-MT.png", f"train_frequency_{ENV}_Ours.png", f"nt_{ENV}_Ours.png"} <= names
+
+
+def test_plot_without_runs(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        plot.main([str(tmp_path)])
+
+
+# ================================================================================================ sweep
+def test_sweep_plan_and_budget(tmp_path):
+    assert sweep.env_id_for("MT10", "smoke") == "MT10-smoke" and sweep.env_id_for("MT10", "full") == "MT10"
+    (tmp_path / "mtsacte" / "MT10-smoke_1").mkdir(parents=True)
+    trials = sweep.plan_trials(tmp_path, ["mtsacte", "mtsac_mt"], ["MT10"], [0, 1], "smoke", resume=False)
+    assert [(t["algo"], t["seed"], t["exp_id"]) for t in trials] == [
+        ("mtsacte", 0, 2),
+        ("mtsacte", 1, 3),
+        ("mtsac_mt", 0, 1),
+        ("mtsac_mt", 1, 1 + 1),
+    ]
+    assert trials[0]["run_dir"] == str(tmp_path / "mtsacte" / "MT10-smoke_2")
+    argv = sweep.trial_command(trials[0], tmp_path, ["-n", "10"], cpus=2)
+    assert argv[argv.index("--exp-id") + 1] == "2" and argv[-2:] == ["-n", "10"] and "--num-threads" in argv
+
+
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason='needs the ray extra: pip install "ray[tune]"')
+def test_sweep_tiny_grid_on_local_ray(tmp_path):
+    import ray
+
+    out = tmp_path / "runs"
+    extra = ["-n", "200", "--eval-freq", "200", "--eval-episodes", "1", "--verbose", "0"]
+    args = ["--algos", "mtsac_mt", "mtsacte", "--envs", ENV, "--seeds", "0", "--out", str(out)]
+    try:
+        trials = sweep.main(
+            [*args, "--num-cpus", "2", "--ray-verbose", "0", "--", *extra, "-params", "learning_starts:100"]
+        )
+        assert [t["status"] for t in trials] == ["done", "done"]
+        for algo in ("mtsac_mt", "mtsacte"):
+            info = read_run_info(out / algo / f"{ENV}_1")
+            assert info["finished"] and info["timesteps"] == 200 and info["seed"] == 0
+        plan = json.loads((out / "sweep.json").read_text())
+        assert len(plan["trials"]) == 2 and all(t["finished"] for t in plan["trials"])
+        # resuming the sweep skips the finished trials
+        again = sweep.main([*args, "--resume", "--num-cpus", "2", "--ray-verbose", "0", "--", *extra])
+        assert [t["run_dir"] for t in again] == [t["run_dir"] for t in trials]
+        assert len(read_run_info(out / "mtsacte" / f"{ENV}_1")["resumes"]) == 0
+    finally:
+        ray.shutdown()
+    assert {"success_toy-conflict.png", "table1.md"} <= {p.name for p in plot.main([str(out), "--out", str(tmp_path)])}

@@ -1,0 +1,304 @@
+"""Tests of the rl-zoo launcher (sb3_mtte.zoo): train, sub-env i = task i, configs, resume, enjoy, video, optuna."""
+
+from __future__ import annotations
+
+import csv
+import inspect
+import json
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.save_util import load_from_pkl
+
+from sb3_mtte import MTSAC, MTSACTE
+from sb3_mtte.common.utils import check_one_hot, get_task_names
+from sb3_mtte.run_info import ALGO_LABELS, read_run_info
+from sb3_mtte.zoo import (
+    ALGO_KEYS,
+    MultiTaskVecEnvFactory,
+    default_config,
+    find_checkpoints,
+    load_model,
+    main,
+    make_task_env,
+    register_env_id,
+    split_env_id,
+)
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "zoo_configs"
+ENV = "toy-conflict"
+TINY = ["--no-progress", "--verbose", "0", "--seed", "3"]
+
+
+def tiny_train(log_dir: Path, algo: str = "mtsacte", *extra: str, steps: int = 400) -> Path:
+    """Train ``algo`` on the 4-task toy for ``steps`` env steps with the zoo; return the run folder."""
+    main(
+        [
+            "train",
+            "--algo",
+            algo,
+            "--env",
+            ENV,
+            "-f",
+            str(log_dir),
+            "-n",
+            str(steps),
+            "--eval-freq",
+            "200",
+            "--eval-episodes",
+            "2",
+            *TINY,
+            *extra,
+        ]
+    )
+    runs = sorted((log_dir / algo).glob(f"{ENV}_*"), key=lambda p: int(p.name.rsplit("_", 1)[1]))
+    return runs[-1]
+
+
+class RaiseAt(BaseCallback):
+    """Stands for a killed process: raise once ``timesteps`` env steps are reached."""
+
+    def __init__(self, timesteps: int) -> None:
+        super().__init__()
+        self.timesteps = timesteps
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self.timesteps:
+            raise RuntimeError("simulated kill")
+        return True
+
+
+# ================================================================================================ the env hook
+def test_env_ids_and_budget_suffix():
+    assert split_env_id("MT10-smoke") == ("MT10", "smoke")
+    assert split_env_id("toy-conflict-6") == ("toy-conflict-6", None)
+    assert register_env_id("MT10-smoke") and register_env_id("toy-agree-3")
+    assert not register_env_id("CartPole-v1")
+    assert not register_env_id("no-such-benchmark")
+
+
+def test_sub_env_i_is_task_i_through_rl_zoo_style_construction():
+    """rl-zoo builds N identical constructors; the factory makes constructor i build task i."""
+    register_env_id("toy-agree-3")
+    spec = gym.spec("toy-agree-3")
+    env = make_vec_env(lambda **kw: spec.make(**kw), n_envs=3, seed=0, vec_env_cls=MultiTaskVecEnvFactory(3, seed=0))
+    try:
+        assert get_task_names(env) == ["agree-0", "agree-1", "agree-2"]
+        check_one_hot(env.reset(), 3)
+    finally:
+        env.close()
+    with pytest.raises(ValueError, match="one sub-env per task"):
+        make_vec_env(lambda **kw: spec.make(**kw), n_envs=2, vec_env_cls=MultiTaskVecEnvFactory(3))
+    with pytest.raises(gym.error.Error, match="one sub-env per task"):
+        spec.make()  # outside the factory, the task is unknown
+    assert make_task_env("toy-agree-3", task_index=2).get_wrapper_attr("task_name") == "agree-2"
+
+
+# ================================================================================================ configs
+TABLE1 = {
+    "mtsac_ind": ("IndependentPolicy", None),
+    "mtsac_mt": ("MlpPolicy", None),
+    "mtsac_mh": ("MultiHeadPolicy", None),
+    "mtsac_softmod": ("SoftModularPolicy", None),
+    "mtsac_clip": ("MlpPolicy", 2000),
+    "mtsacte": ("MlpPolicy", 2000),
+    "mtsacte_novae": ("MlpPolicy", 2000),
+    "mtsacte_noclip": ("MlpPolicy", None),
+    "mtsacte_nobestbatch": ("MlpPolicy", 2000),
+}
+ZOO_KEYS = {"n_timesteps", "policy", "policy_kwargs", "n_envs", "eval_freq", "eval_episodes", "save_freq"}
+
+
+@pytest.mark.parametrize("algo", sorted(TABLE1))
+def test_hyperparameter_file(algo):
+    """Every row has the paper's settings (Appendix B) and only arguments its class accepts."""
+    path = CONFIG_DIR / f"{algo}.yml"
+    assert default_config(algo) is not None
+    config = yaml.safe_load(path.read_text())
+    assert {"MT10", "MT20", "MT10-smoke", "MT20-smoke", "toy-conflict"} <= set(config)
+    cls = ALGO_KEYS[algo]
+    accepted = set(inspect.signature(cls.__init__).parameters)
+    policy, clip = TABLE1[algo]
+    for env, n_tasks in (("MT10", 10), ("MT20", 20)):
+        full, smoke = config[env], config[f"{env}-smoke"]
+        assert int(full["n_timesteps"]) == 5_000_000 * n_tasks
+        assert full["batch_size"] == 128
+        assert eval(full["policy_kwargs"])["net_arch"] == [400, 400]
+        assert full["policy"] == policy and full["q_loss_clip"] == clip
+        assert full["eval_episodes"] == 50
+        assert int(smoke["n_timesteps"]) < int(full["n_timesteps"]) // 1000
+        assert smoke["policy"] == policy and smoke["batch_size"] == 128  # same settings, smaller budget
+        if cls is MTSACTE:
+            assert full["n_select"] == n_tasks // 2 and full["top_k"] == 30
+            assert full["use_vae"] == (algo != "mtsacte_novae")
+            assert full["use_topk"] == (algo != "mtsacte_nobestbatch")
+        for entry in (full, smoke, config["toy-conflict"]):
+            assert set(entry) - ZOO_KEYS <= accepted, set(entry) - ZOO_KEYS - accepted
+
+
+@pytest.mark.parametrize("algo", sorted(TABLE1))
+def test_toy_entry_builds_its_model(algo):
+    from sb3_mtte.envs import make_mt_env
+
+    entry = dict(yaml.safe_load((CONFIG_DIR / f"{algo}.yml").read_text())["toy-conflict"])
+    for key in ZOO_KEYS - {"policy", "policy_kwargs"}:
+        entry.pop(key, None)
+    entry["policy_kwargs"] = eval(entry["policy_kwargs"])
+    model = ALGO_KEYS[algo](env=make_mt_env(ENV), **entry)
+    assert model.n_tasks == 4
+    assert ALGO_LABELS[algo]
+
+
+# ================================================================================================ train
+def test_train_writes_model_run_info_and_logs(tmp_path):
+    run = tiny_train(tmp_path, "mtsacte", "-params", "learning_starts:100")
+    assert run == tmp_path / "mtsacte" / f"{ENV}_1"
+    model = load_model(run / f"{ENV}.zip")
+    assert isinstance(model, MTSACTE) and model.num_timesteps == 400
+    info = read_run_info(run)
+    assert info["algo"] == "mtsacte" and info["label"] == "Ours" and info["seed"] == 3
+    assert info["n_tasks"] == 4 and info["task_names"][-1] == "conflict" and info["episode_length"] == 50
+    assert info["finished"] and info["timesteps"] == 400 and info["n_timesteps"] == 400
+    assert {"sb3_mtte", "torch", "stable_baselines3", "gymnasium", "metaworld", "numpy"} <= set(info["versions"])
+    assert "commit" in info["git"] and info["hyperparams"]["n_select"] == 2
+    config = yaml.load((run / ENV / "config.yml").read_text(), Loader=yaml.UnsafeLoader)
+    assert config["n_envs"] == 4 and config["eval_freq"] == 200
+    with np.load(run / "evaluations.npz") as data:
+        assert list(data["timesteps"]) == [200, 400] and data["success_rate"].shape == (2, 4)
+    with open(run / "progress.csv") as file:
+        header = next(csv.reader(file))
+    assert "train/critic_loss/03_conflict" in header and "eval/success_rate" in header
+    assert list(run.glob("events.out.tfevents.*"))
+    records = [json.loads(line) for line in (run / "negative_transfer.jsonl").read_text().splitlines()]
+    assert records and len(records[0]["transfer_matrix"]) == 4
+    assert (run / "best_model.zip").is_file()
+
+
+def test_train_mtsac_row_and_checkpoints(tmp_path):
+    run = tiny_train(tmp_path, "mtsac_mh", "--save-freq", "200", "--keep-buffers", "0", steps=600)
+    model = load_model(run / f"{ENV}.zip")
+    assert isinstance(model, MTSAC) and type(model.policy).__name__ == "MultiHeadPolicy"
+    assert read_run_info(run)["label"] == "SAC-MT-MH"
+    checkpoints = find_checkpoints(run)  # taken after the update of a step: none at the last step
+    assert [c.timesteps for c in checkpoints] == [200, 400]
+    assert all(c.meta["episode_boundary"] and c.replay_buffer is not None for c in checkpoints)
+
+
+# ================================================================================================ resume
+def _progress(run: Path) -> list[dict[str, str]]:
+    with open(run / "progress.csv") as file:
+        return list(csv.DictReader(file))
+
+
+def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
+    """Kill a run after its checkpoint at 400 steps, resume it: everything equals the uninterrupted run."""
+    args = ["--save-freq", "200", "--save-replay-buffer", "-params", "learning_starts:100"]
+    run_a = tiny_train(tmp_path / "a", "mtsacte", *args, steps=800)
+    killer = f"{RaiseAt.__module__}.RaiseAt"
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        tiny_train(tmp_path / "b", "mtsacte", *args, f"callback:{{'{killer}': dict(timesteps=560)}}", steps=800)
+    run_b = tmp_path / "b" / "mtsacte" / f"{ENV}_1"
+    assert [c.timesteps for c in find_checkpoints(run_b)] == [400]  # killed after the checkpoint at 400
+    assert not (run_b / f"{ENV}.zip").exists()
+    # the state at the checkpoint is the uninterrupted run's state at that step
+    ckpt_a, ckpt_b = load_model(run_a / "rl_model_400_steps.zip"), load_model(run_b / "rl_model_400_steps.zip")
+    assert ckpt_a.num_timesteps == ckpt_b.num_timesteps == 400 and ckpt_a._n_updates == ckpt_b._n_updates
+    for key, value in ckpt_a.policy.state_dict().items():
+        assert th.equal(value, ckpt_b.policy.state_dict()[key]), key
+
+    # the kill came from a hyperparameter, which the resumed run would read back from config.yml: drop it
+    resume = ["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *TINY[:3]]
+    main([*resume, "-params", "callback:None"])
+    model_a, model_b = load_model(run_a / f"{ENV}.zip"), load_model(run_b / f"{ENV}.zip")
+    assert model_a.num_timesteps == model_b.num_timesteps == 800
+    assert model_a._n_updates == model_b._n_updates
+    for key, value in model_a.policy.state_dict().items():  # the next updates were the same, to the last bit
+        assert th.equal(value, model_b.policy.state_dict()[key]), key
+    buffer_a, buffer_b = load_from_pkl(run_a / "replay_buffer.pkl"), load_from_pkl(run_b / "replay_buffer.pkl")
+    for name in ("observations", "next_observations", "actions", "rewards", "dones", "timeouts"):
+        assert np.array_equal(getattr(buffer_a, name), getattr(buffer_b, name)), name
+    assert np.array_equal(buffer_a.n_episodes, buffer_b.n_episodes)
+    for task in range(4):  # the top-K store lives in the buffer and is restored with it
+        assert np.array_equal(buffer_a.top_k_returns(task), buffer_b.top_k_returns(task))
+    # the logs continue as if never interrupted
+    assert (run_a / "negative_transfer.jsonl").read_text() == (run_b / "negative_transfer.jsonl").read_text()
+    with np.load(run_a / "evaluations.npz") as ea, np.load(run_b / "evaluations.npz") as eb:
+        assert np.array_equal(ea["timesteps"], eb["timesteps"])
+        assert np.array_equal(ea["success_rate"], eb["success_rate"])
+    rows_a, rows_b = _progress(run_a), _progress(run_b)
+    assert [r["time/total_timesteps"] for r in rows_a] == [r["time/total_timesteps"] for r in rows_b]
+    for row_a, row_b in zip(rows_a, rows_b):
+        for key, value in row_a.items():
+            if not key.startswith("time/"):
+                assert row_b.get(key) == value, (row_a["time/total_timesteps"], key)
+    info = read_run_info(run_b)
+    assert info["finished"] and [r["timesteps"] for r in info["resumes"]] == [400]
+    assert list(run_b.glob("*.seg1.monitor.csv"))
+
+
+def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
+    run = tiny_train(tmp_path, "mtsac_mt", "--save-freq", "200", "--save-replay-buffer", steps=200)
+    main(["train", "--resume", str(run), "-n", "400", *TINY[:3]])  # algo and env from the run folder
+    assert read_run_info(run)["resumes"][0]["timesteps"] == 200  # from the final model and its buffer
+    assert load_model(run / f"{ENV}.zip").num_timesteps == 400
+    with np.load(run / "evaluations.npz") as data:
+        assert list(data["timesteps"]) == [200, 400]
+
+
+# ================================================================================================ enjoy, video
+@pytest.fixture(scope="module")
+def trained_run(tmp_path_factory):
+    return tiny_train(tmp_path_factory.mktemp("zoo"), "mtsac_mt")
+
+
+def test_enjoy(trained_run, capsys):
+    folder = str(trained_run.parent.parent)
+    main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--no-render", "-n", "110"])
+    out = capsys.readouterr().out
+    assert "task  3 conflict" in out and "Success rate per task" in out
+
+
+def test_record_video_one_file_per_task(trained_run, tmp_path):
+    folder = str(trained_run.parent.parent)
+    written = main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "-o", str(tmp_path), "--tile"])
+    assert sorted(written) == sorted(tmp_path.glob("*.mp4"))
+    videos = sorted(p.name for p in tmp_path.glob("*.mp4"))
+    assert len(videos) == 5 and any("03_conflict" in v for v in videos) and any("all_tasks" in v for v in videos)
+    assert all((tmp_path / v).stat().st_size > 1000 for v in videos)
+
+
+# ================================================================================================ optuna
+def test_optuna_search_runs_through_the_zoo(tmp_path):
+    main(
+        [
+            "train",
+            "--algo",
+            "mtsac_mt",
+            "--env",
+            ENV,
+            "-f",
+            str(tmp_path),
+            "-optimize",
+            "--n-trials",
+            "1",
+            "-n",
+            "200",
+            "--n-evaluations",
+            "1",
+            "--eval-episodes",
+            "1",
+            "--no-optim-plots",
+            "--sampler",
+            "random",
+            "--pruner",
+            "none",
+            *TINY,
+        ]
+    )
+    assert list((tmp_path / "mtsac_mt").glob("report_*.csv"))
