@@ -59,7 +59,9 @@ class MTSACTE(MTSAC):
         mean task gradients; linear in N).
     :param use_vae: include the VAE term of Eq. 14.
     :param use_topk: draw representation batches from the top-K episodes (else from the main buffer).
-    :param nt_chunk_size: ``vmap`` chunk over the N virtual parameter sets (None: all at once).
+    :param nt_chunk_size: ``vmap`` chunk over the virtual parameter sets theta^k: None evaluates all at once, 1 one
+        theta^k per batched pass over all tasks; ``"auto"``: 1 on CPU (measured 2.3x faster there at N=10), None on
+        GPUs.
     :param kwargs: every other argument of :class:`sb3_mtte.MTSAC` (learning_rate, batch_size = L per task, ...).
     """
 
@@ -92,7 +94,7 @@ class MTSACTE(MTSAC):
         nt_estimator: str = "virtual_step",
         use_vae: bool = True,
         use_topk: bool = True,
-        nt_chunk_size: int | None = None,
+        nt_chunk_size: int | str | None = "auto",
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -110,6 +112,8 @@ class MTSACTE(MTSAC):
             raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {nt_estimator!r}.")
         if nt_step_size < 0 or c_vae < 0 or rep_learning_rate <= 0:
             raise ValueError("nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0.")
+        if not (nt_chunk_size in ("auto", None) or (isinstance(nt_chunk_size, int) and nt_chunk_size >= 1)):
+            raise ValueError(f"nt_chunk_size must be 'auto', None or a positive int, got {nt_chunk_size!r}.")
         if iteration_length < 1 or rep_gradient_steps < 1:
             raise ValueError("iteration_length (H) and rep_gradient_steps must be at least 1.")
         replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
@@ -205,7 +209,7 @@ class MTSACTE(MTSAC):
         losses = []
         for _ in range(self.rep_gradient_steps):
             batch = self._representation_batch(batch_size)
-            objectives = TaskObjectives(self.policy, batch, self.entropy_coefficients, self.nt_chunk_size)
+            objectives = TaskObjectives(self.policy, batch, self.entropy_coefficients, self._chunk_size())
             encoder_params, _ = objectives.phi()
             with th.no_grad():
                 z = objectives.embedding(encoder_params)[0]
@@ -226,6 +230,11 @@ class MTSACTE(MTSAC):
             self._store_negative_transfer(transfer, mu, selected)
         self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
+
+    def _chunk_size(self) -> int | None:
+        if self.nt_chunk_size == "auto":
+            return 1 if self.device.type == "cpu" else None
+        return self.nt_chunk_size  # type: ignore[return-value]
 
     def _apply_gradients(self, enc_grads: dict[str, th.Tensor], dec_grads: dict[str, th.Tensor]) -> None:
         optimizer = self.policy.rep_optimizer
