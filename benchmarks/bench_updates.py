@@ -77,17 +77,24 @@ def fill_buffer(model, n_rows: int) -> None:
     buffer.pos = n_rows
 
 
-def median_seconds(fn: Callable[[], None], repeats: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
+def time_once(fn: Callable[[], None]) -> float:
+    start = time.perf_counter()
+    fn()
+    if th.cuda.is_available():
+        th.cuda.synchronize()
+    return time.perf_counter() - start
+
+
+def interleaved_medians(fns: dict[str, Callable[[], None]], repeats: int, warmup: int = 3) -> dict[str, float]:
+    """Median time of each function, timed round-robin so that drifts of the machine hit every one alike."""
+    for fn in fns.values():
+        for _ in range(warmup):
+            fn()
+    times: dict[str, list[float]] = {label: [] for label in fns}
     for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        if th.cuda.is_available():
-            th.cuda.synchronize()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+        for label, fn in fns.items():
+            times[label].append(time_once(fn))
+    return {label: statistics.median(values) for label, values in times.items()}
 
 
 def quiet(model):
@@ -98,28 +105,31 @@ def quiet(model):
 def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) -> dict:
     total_batch = n_tasks * batch_per_task
     rows = 4 * batch_per_task
-    results: dict[str, float] = {}
+    updates: dict[str, Callable[[], None]] = {}
 
     sac = quiet(SAC("MlpPolicy", synthetic_env(n_tasks), policy_kwargs=dict(net_arch=[400, 400]),
                     buffer_size=rows * n_tasks, device=device, seed=0))
     fill_buffer(sac, rows)
-    results["SB3-SAC"] = median_seconds(lambda: sac.train(1, total_batch), repeats)
+    updates["SB3-SAC"] = lambda: sac.train(1, total_batch)
 
     for label, (policy, kwargs) in VARIANTS.items():
         model = quiet(MTSAC(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0, **kwargs))
         fill_buffer(model, rows)
-        results[label] = median_seconds(lambda m=model: m.train(1, batch_per_task), repeats)
+        updates[label] = lambda m=model: m.train(1, batch_per_task)
 
     te = quiet(MTSACTE("MlpPolicy", synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0))
     fill_buffer(te, rows)
-    te._last_iteration_start = 0  # measure the every-step update alone
-    te.num_timesteps = 0
-    results["MTSACTE-update"] = median_seconds(lambda: te.train(1, batch_per_task), repeats)
+    te._last_iteration_start = 0  # the every-step update alone: no recomputation is due at num_timesteps 0
+    updates["MTSACTE-update"] = lambda: te.train(1, batch_per_task)
+    results = interleaved_medians(updates, repeats)
+
+    recomputations: dict[str, Callable[[], None]] = {}
     for estimator in ("virtual_step", "gradient_dot"):
-        te.nt_estimator, te.rep_gradient_steps = estimator, 1
-        results[f"MTSACTE-recompute-{estimator}"] = median_seconds(
-            lambda: te.update_representation(batch_per_task), max(3, repeats // 3), warmup=1
-        )
+        model = quiet(MTSACTE("MlpPolicy", synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0,
+                              nt_estimator=estimator, rep_gradient_steps=1))
+        fill_buffer(model, rows)
+        recomputations[f"MTSACTE-recompute-{estimator}"] = lambda m=model: m.update_representation(batch_per_task)
+    results.update(interleaved_medians(recomputations, max(3, repeats // 3), warmup=1))
 
     base = results["SB3-SAC"]
     report = {
