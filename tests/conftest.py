@@ -3,6 +3,7 @@ multi-task env whose episode returns are known in advance."""
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 import gymnasium as gym
@@ -175,3 +176,35 @@ def assert_state_equal(a: Any, b: Any, path: str = "") -> None:
             assert_state_equal(x, y, f"{path}[{i}]")
     else:
         assert a == b, path
+
+
+# ---------------------------------------------------------------------------------------------------- zoo
+ENV = "toy-conflict"
+TINY = ["--no-progress", "--verbose", "0", "--seed", "3"]
+
+
+def tiny_train(log_dir: Path, algo: str = "mtsacte", *extra: str, steps: int = 400) -> Path:
+    """Train ``algo`` on the 4-task toy for ``steps`` env steps with the zoo; return the run folder."""
+    from sb3_mtte.zoo import main
+
+    main(
+        [
+            "train",
+            "--algo",
+            algo,
+            "--env",
+            ENV,
+            "-f",
+            str(log_dir),
+            "-n",
+            str(steps),
+            "--eval-freq",
+            "200",
+            "--eval-episodes",
+            "2",
+            *TINY,
+            *extra,
+        ]
+    )
+    runs = sorted((log_dir / algo).glob(f"{ENV}_*"), key=lambda p: int(p.name.rsplit("_", 1)[1]))
+    return runs[-1]

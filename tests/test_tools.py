@@ -22,9 +22,8 @@ from sb3_mtte.run_info import (
     update_run_info,
     write_run_info,
 )
-from sb3_mtte.zoo import main as zoo_main
+from conftest import ENV, tiny_train
 
-ENV = "toy-conflict"
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 
 
@@ -33,30 +32,7 @@ def zoo_runs(tmp_path_factory):
     """Two real tiny runs (MTSACTE and SAC-MT) in the zoo layout."""
     root = tmp_path_factory.mktemp("runs")
     for algo in ("mtsacte", "mtsac_mt"):
-        zoo_main(
-            [
-                "train",
-                "--algo",
-                algo,
-                "--env",
-                ENV,
-                "-f",
-                str(root),
-                "-n",
-                "400",
-                "--eval-freq",
-                "200",
-                "--eval-episodes",
-                "2",
-                "--no-progress",
-                "--verbose",
-                "0",
-                "--seed",
-                "1",
-                "-params",
-                "learning_starts:100",
-            ]
-        )
+        tiny_train(root, algo, "--seed", "1", "-params", "learning_starts:100")
     return root
 
 

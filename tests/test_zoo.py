@@ -16,6 +16,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.save_util import load_from_pkl
 
+from conftest import ENV, TINY, tiny_train
 from sb3_mtte import MTSAC, MTSACTE
 from sb3_mtte.common.utils import check_one_hot, get_task_names
 from sb3_mtte.run_info import ALGO_LABELS, read_run_info
@@ -32,33 +33,6 @@ from sb3_mtte.zoo import (
 )
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "zoo_configs"
-ENV = "toy-conflict"
-TINY = ["--no-progress", "--verbose", "0", "--seed", "3"]
-
-
-def tiny_train(log_dir: Path, algo: str = "mtsacte", *extra: str, steps: int = 400) -> Path:
-    """Train ``algo`` on the 4-task toy for ``steps`` env steps with the zoo; return the run folder."""
-    main(
-        [
-            "train",
-            "--algo",
-            algo,
-            "--env",
-            ENV,
-            "-f",
-            str(log_dir),
-            "-n",
-            str(steps),
-            "--eval-freq",
-            "200",
-            "--eval-episodes",
-            "2",
-            *TINY,
-            *extra,
-        ]
-    )
-    runs = sorted((log_dir / algo).glob(f"{ENV}_*"), key=lambda p: int(p.name.rsplit("_", 1)[1]))
-    return runs[-1]
 
 
 class RaiseAt(BaseCallback):
