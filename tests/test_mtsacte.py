@@ -403,7 +403,7 @@ def test_conflicting_task_has_largest_mu_and_smallest_weight():
         batch = RepresentationBatch(
             obs, th.randn(n, batch_size, model.policy.z_dim, generator=gen), th.randn(n, batch_size, 2, generator=gen)
         )
-        objectives = TaskObjectives(model.policy, batch, model.entropy_coefficients)
+        objectives = TaskObjectives(model.policy, batch, model.entropy_coefficients, model._chunk_size())
         matrix = transfer_matrix(objectives, vector_z(objectives), model.nt_step_size)
         matrices.append(matrix)
         mus.append(negative_transfer_measure(matrix).double())
@@ -580,7 +580,7 @@ def test_update_representation_applies_the_equations(toy_env, monkeypatch, estim
     model.learn(200)
     batch = model._representation_batch(16)
     monkeypatch.setattr(model, "_representation_batch", lambda batch_size: batch)
-    objectives = TaskObjectives(model.policy, batch, model.entropy_coefficients)
+    objectives = TaskObjectives(model.policy, batch, model.entropy_coefficients, model._chunk_size())
     expected_matrix = transfer_matrix(objectives, vector_z(objectives), 1e-2, estimator)
     mu = negative_transfer_measure(expected_matrix)
     selected = select_benign_tasks(mu, model.n_select)
