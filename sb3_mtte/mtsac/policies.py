@@ -16,16 +16,13 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_mtte.common.critics import MultiTaskCritic
 from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP, mlp
+from sb3_mtte.common.policies import MultiTaskPolicy
 from sb3_mtte.common.utils import task_ids_from_obs
-
-DEFAULT_NET_ARCH = [400, 400]
 
 
 class MultiTaskActor(nn.Module):
@@ -168,14 +165,14 @@ class SoftModularActor(MultiTaskActor):
         return self.head(x.sum(dim=0))
 
 
-class MTSACPolicy(BasePolicy):
+class MTSACPolicy(MultiTaskPolicy):
     """Actor + twin critics (+ targets) for the MTSAC family. Default alias ``"MlpPolicy"`` (SAC-MT).
 
     :param observation_space: flat Box: state followed by the N-dim one-hot.
     :param action_space: Box action space.
     :param lr_schedule: learning-rate schedule.
     :param n_tasks: number of tasks N (set by the algorithm).
-    :param net_arch: hidden widths, a list for both actor and critic or ``dict(pi=[...], qf=[...])``.
+    :param net_arch: hidden widths, a list for actor and critic or ``dict(pi=[...], qf=[...])``.
     :param activation_fn: activation function.
     :param critic_arch: ``"per_task"`` (one twin Q per task, default) or ``"shared"``.
     :param n_critics: number of twin Q-networks.
@@ -200,68 +197,23 @@ class MTSACPolicy(BasePolicy):
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
         optimizer_kwargs: dict[str, Any] | None = None,
     ) -> None:
-        if optimizer_kwargs is None:
-            optimizer_kwargs = {"fused": True} if optimizer_class in (th.optim.Adam, th.optim.AdamW) else {}
         super().__init__(
-            observation_space,
-            action_space,
-            optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
-            squash_output=True,
-            normalize_images=False,
+            observation_space, action_space, n_tasks, net_arch, activation_fn, n_critics, optimizer_class, optimizer_kwargs
         )
-        if net_arch is None:
-            net_arch = DEFAULT_NET_ARCH
-        self.net_arch = net_arch
-        self.pi_arch, self.qf_arch = (net_arch["pi"], net_arch["qf"]) if isinstance(net_arch, dict) else (net_arch, net_arch)
-        self.n_tasks, self.activation_fn = n_tasks, activation_fn
-        self.critic_arch, self.n_critics = critic_arch, n_critics
+        self.critic_arch = critic_arch
         self.actor_kwargs = actor_kwargs or {}
-        self.state_dim = observation_space.shape[0] - n_tasks
-        self.action_dim = action_space.shape[0]
-        self._build(lr_schedule)
-
-    def _build(self, lr_schedule: Schedule) -> None:
-        self.actor = self.make_actor()
-        self.actor.optimizer = self.optimizer_class(self.actor.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.critic = self.make_critic()
-        self.critic.optimizer = self.optimizer_class(self.critic.parameters(), lr=lr_schedule(1), **self.optimizer_kwargs)
-        self.critic_target = self.make_critic()
-        self.critic_target.load_state_dict(self.critic.state_dict())
-        self.critic_target.requires_grad_(False)
-        self.critic_target.train(False)
-
-    def make_actor(self) -> MultiTaskActor:
-        return self.actor_class(
-            self.state_dim, self.action_dim, self.n_tasks, self.pi_arch, self.activation_fn, **self.actor_kwargs
+        self.actor = self.actor_class(
+            self.state_dim, self.action_dim, n_tasks, self.arch("pi"), activation_fn, **self.actor_kwargs
         )
-
-    def make_critic(self) -> MultiTaskCritic:
-        return MultiTaskCritic(
-            self.state_dim, self.action_dim, self.n_tasks, self.qf_arch, self.activation_fn, self.critic_arch, self.n_critics
-        )
+        self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule(1))
+        self._build_critics(lr_schedule, critic_arch)
 
     def action_log_prob(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
         """Reparameterised actions and log-probabilities of a task-major batch."""
         return self.actor.action_log_prob(obs, None, noise)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        data = super()._get_constructor_parameters()
-        data.update(
-            lr_schedule=self._dummy_schedule,  # type: ignore[attr-defined]
-            n_tasks=self.n_tasks,
-            net_arch=self.net_arch,
-            activation_fn=self.activation_fn,
-            critic_arch=self.critic_arch,
-            n_critics=self.n_critics,
-            actor_kwargs=self.actor_kwargs,
-            optimizer_class=self.optimizer_class,
-            optimizer_kwargs=self.optimizer_kwargs,
-        )
-        return data
-
-    def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self._predict(obs, deterministic=deterministic)
+        return {**super()._get_constructor_parameters(), "critic_arch": self.critic_arch, "actor_kwargs": self.actor_kwargs}
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self.actor(observation, deterministic)
