@@ -318,9 +318,15 @@ def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[
     return chosen or list(range(len(names)))
 
 
-def _grid(n: int, max_cols: int = 5) -> tuple[int, int]:
+def _panels(n: int, max_cols: int, width: float, height: float):
+    """A figure with ``n`` panels in a grid of at most ``max_cols`` columns (unused cells hidden)."""
     cols = min(n, max_cols)
-    return math.ceil(n / cols), cols
+    rows = math.ceil(n / cols)
+    fig, grid = _pyplot().subplots(rows, cols, figsize=(width * cols, height * rows), squeeze=False)
+    axes = [grid[j // cols][j % cols] for j in range(rows * cols)]
+    for ax in axes[n:]:
+        ax.axis("off")
+    return fig, axes[:n]
 
 
 def _save(fig, path: Path, opts: PlotOptions, written: list[Path]) -> None:
@@ -361,10 +367,8 @@ def plot_per_task(bench: str, groups: dict[str, list[Run]], opts: PlotOptions, w
     """Figs. 8-9: success of every task, one panel per task, mean +- std over seeds per algorithm."""
     plt = _pyplot()
     names = next(iter(groups.values()))[0].task_names
-    rows, cols = _grid(len(names))
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.6 * rows), squeeze=False)
-    for i, name in enumerate(names):
-        ax = axes[i // cols][i % cols]
+    fig, axes = _panels(len(names), 5, 3.2, 2.6)
+    for i, (ax, name) in enumerate(zip(axes, names)):
         for label in label_order(list(groups)):
             curves = []
             for run in groups[label]:
@@ -378,9 +382,7 @@ def plot_per_task(bench: str, groups: dict[str, list[Run]], opts: PlotOptions, w
         ax.set_ylim(-2, 102)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
-    for j in range(len(names), rows * cols):
-        axes[j // cols][j % cols].axis("off")
-    handles, labels = axes[0][0].get_legend_handles_labels()
+    handles, labels = axes[0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 6), fontsize=8)
     fig.suptitle(f"{bench}: success rate (%) per task vs {_xlabel(opts)}", fontsize=10)
@@ -430,16 +432,12 @@ def plot_bellman(bench: str, groups: dict[str, list[Run]], opts: PlotOptions, wr
         runs = with_loss[label]
         names = runs[0].task_names
         tasks = _selected_tasks(names, opts.tasks)
-        rows, cols = _grid(len(tasks), 4)
-        fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows), squeeze=False)
-        for j, i in enumerate(tasks):
-            ax = axes[j // cols][j % cols]
+        fig, axes = _panels(len(tasks), 4, 3.6, 2.8)
+        for ax, i in zip(axes, tasks):
             success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts, opts.smooth)
             loss = _mean_series(runs, lambda r, i=i: task_scalar(r, "train/critic_loss", i), opts, opts.smooth)
             _twin_panel(ax, success, loss, "soft Bellman error")
             ax.set_title(short_task_name(names[i]), fontsize=9)
-        for j in range(len(tasks), rows * cols):
-            axes[j // cols][j % cols].axis("off")
         fig.suptitle(
             f"{bench}, {label}: success rate % (blue) and soft Bellman error J^Q (orange) vs {_xlabel(opts)}",
             fontsize=9,
@@ -505,10 +503,8 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
         n = runs[0].n_tasks
         tasks = _selected_tasks(names, opts.tasks)
         # Fig. 5
-        rows, cols = _grid(len(tasks), 4)
-        fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 2.8 * rows), squeeze=False)
-        for j, i in enumerate(tasks):
-            ax = axes[j // cols][j % cols]
+        fig, axes = _panels(len(tasks), 4, 3.6, 2.8)
+        for ax, i in zip(axes, tasks):
 
             def frequency(run: Run, i: int = i) -> Series:
                 window = opts.freq_window_episodes * _episode_length(run) * run.n_tasks
@@ -519,8 +515,6 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
             twin = _twin_panel(ax, success, _mean_series(runs, frequency, opts), "train frequency")
             twin.set_ylim(-0.02, 1.02)
             ax.set_title(short_task_name(names[i]), fontsize=9)
-        for j in range(len(tasks), rows * cols):
-            axes[j // cols][j % cols].axis("off")
         fig.suptitle(
             f"{bench}, {label}: success rate % (blue) and train frequency (orange, share of recomputations in C_s "
             f"over {opts.freq_window_episodes} episodes)",
