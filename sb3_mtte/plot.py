@@ -2,7 +2,7 @@
 
 Usage::
 
-    python -m sb3_mtte.plot RUNS_DIR [--out docs/] [--tasks reach pick-place] [--matrix-times 1e5 2.5e6 5e6]
+    python -m sb3_mtte.plot RUNS_DIR [--out RUNS_DIR] [--tasks reach pick-place] [--matrix-times 1e5 2.5e6 5e6]
                             [--freq-window-episodes 20] [--smooth 1] [--x per-task|total]
 
 Run folders are found anywhere under RUNS_DIR by their ``run_info.json``; the zoo writes them as
@@ -26,8 +26,10 @@ Written to ``--out`` (``<b>`` = benchmark, ``<a>`` = algorithm label):
 - ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm;
 - ``train_frequency_<b>_<a>.png`` (Fig. 5): per task, the fraction of recomputations in which it was in C_s
   over a sliding window, and its success;
-- ``nt_<b>_<a>.png``: mu and the task weights w over time;
+- ``nt_<b>_<a>.png``: mu, the task weights w and the task information in z (linear-probe accuracy) over time;
 - ``nt_matrix_<b>_<a>.png``: the N x N matrix [k, i] = J_i(theta^k) - J_i(theta) at ``--matrix-times``;
+- ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one record per run that has a
+  ``success.json``: algo, label, benchmark, seed, env_steps, episodes_per_task and success ``{mean, per_task}``;
 - ``table1.md``: final success, mean +- std over seeds, per algorithm and benchmark (also printed). A run's final
   success is its ``success.json`` when present, else its last evaluation.
 
@@ -276,6 +278,7 @@ class PlotOptions:
     matrix_times: list[float] | None = None
     freq_window_episodes: int = 20
     dpi: int = 120
+    results_dir: Path | None = None
 
 
 def _pyplot():
@@ -521,8 +524,8 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
             fontsize=9,
         )
         _save(fig, opts.out / f"train_frequency_{_safe(bench)}_{_safe(label)}.png", opts, written)
-        # mu and w over time
-        fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+        # mu, w and the task information in z over time
+        fig, axes = plt.subplots(3, 1, figsize=(8, 8), sharex=True)
         for key, ax, title in (
             ("mu", axes[0], "mu (negative-transfer count, Eq. 6)"),
             ("weights", axes[1], "w (Eq. 8)"),
@@ -533,7 +536,15 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
                     ax.plot(series[0], series[1], label=short_task_name(names[i]), lw=1)
             ax.set_ylabel(title)
             ax.grid(alpha=0.3)
-        axes[1].set_xlabel(_xlabel(opts))
+        probe = _mean_series([r for r in runs if _has_probe(r)], _probe_series, opts, opts.smooth)
+        if probe is not None:
+            axes[2].plot(probe[0], probe[1], color="k", lw=1)
+        axes[2].axhline(1.0 / n, color="gray", ls="--", lw=0.8, label="chance (1/N)")
+        axes[2].set_ylim(-0.02, 1.02)
+        axes[2].set_ylabel("task probe accuracy of z")
+        axes[2].legend(fontsize=7, loc="lower right")
+        axes[2].grid(alpha=0.3)
+        axes[2].set_xlabel(_xlabel(opts))
         axes[0].legend(fontsize=7, ncol=max(1, math.ceil(n / 10)), loc="upper left", bbox_to_anchor=(1.0, 1.0))
         fig.suptitle(f"{bench}, {label}: negative-transfer measure and task weights (mean over seeds)", fontsize=10)
         _save(fig, opts.out / f"nt_{_safe(bench)}_{_safe(label)}.png", opts, written)
@@ -563,6 +574,15 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
         _save(fig, opts.out / f"nt_matrix_{_safe(bench)}_{_safe(label)}.png", opts, written)
 
 
+def _has_probe(run: Run) -> bool:
+    return all("task_probe_accuracy" in record for record in run.nt_records)
+
+
+def _probe_series(run: Run) -> Series:
+    """Held-out accuracy of the linear probe of the task from z, per recomputation."""
+    return _nt_arrays(run, "task_probe_accuracy")
+
+
 def _nt_series(run: Run, key: str, task: int) -> Series:
     steps, values = _nt_arrays(run, key)
     return steps, values[:, task]
@@ -588,6 +608,28 @@ def final_success(run: Run) -> float | None:
     return float(curve[1][-1])
 
 
+def results_records(runs: Sequence[Run]) -> list[dict[str, Any]]:
+    """One record per run with a final evaluation (``success.json``): algo, label, benchmark, seed, env_steps and
+    success ``{"mean": m, "per_task": {task: rate}}``, sorted by algorithm order and seed."""
+    records = []
+    for run in runs:
+        if run.final is None or "per_task" not in run.final:
+            continue
+        records.append(
+            {
+                "algo": run.info.get("algo"),
+                "label": run.label,
+                "benchmark": run.benchmark,
+                "seed": run.seed,
+                "env_steps": run.final.get("timesteps"),
+                "episodes_per_task": run.final.get("episodes_per_task"),
+                "success": {"mean": run.final["mean"], "per_task": run.final["per_task"]},
+            }
+        )
+    order = {label: i for i, label in enumerate(label_order([r["label"] for r in records]))}
+    return sorted(records, key=lambda r: (order[r["label"]], r["seed"] if r["seed"] is not None else -1))
+
+
 def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> str:
     """Markdown Table 1: final success (%) mean +- std over seeds, per algorithm (rows) and benchmark (columns)."""
     benches = sorted(groups)
@@ -609,7 +651,7 @@ def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> 
         "Final success rate, mean ± std over seeds (n = number of seeds); a run's final success is its "
         "success.json (python -m sb3_mtte.evaluate) when present, else its last evaluation.\n\n" + "\n".join(lines)
     )
-    shown = [b for b in ("MT10", "MT20") if any(b == bench.split("-smoke")[0] for bench in benches)]
+    shown = [b for b in ("MT10", "MT20") if any(b == bench.split("-")[0] for bench in benches)]
     if with_paper and shown:
         paper = ["| Algorithm | " + " | ".join(shown) + " |", "|:--|" + "--:|" * len(shown)]
         for label, values in PAPER_TABLE1.items():
@@ -636,6 +678,13 @@ def make_plots(runs_dir: str | Path, opts: PlotOptions) -> list[Path]:
             plot_per_task(bench, by_label, opts, written)
             plot_bellman(bench, by_label, opts, written)
             plot_negative_transfer(bench, by_label, opts, written)
+            records = results_records([run for by_seed in by_label.values() for run in by_seed])
+            if records:
+                results_dir = opts.results_dir or opts.out
+                results_dir.mkdir(parents=True, exist_ok=True)
+                name = f"{_safe(bench)}.json" if opts.results_dir else f"results_{_safe(bench)}.json"
+                (results_dir / name).write_text(json.dumps(records, indent=1) + "\n")
+                written.append(results_dir / name)
     table = table1(groups)
     (opts.out / "table1.md").write_text(table)
     written.append(opts.out / "table1.md")
@@ -647,7 +696,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     """``python -m sb3_mtte.plot RUNS_DIR [--out DIR] ...``"""
     parser = argparse.ArgumentParser(prog="python -m sb3_mtte.plot", description=__doc__.split("\n\n")[0])
     parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
-    parser.add_argument("--out", default="docs", help="output folder (default docs/)")
+    parser.add_argument("--out", default=None, help="output folder (default: RUNS_DIR itself, beside the runs)")
     parser.add_argument("--x", choices=["per-task", "total"], default="per-task", help="time axis (default per-task)")
     parser.add_argument("--smooth", type=int, default=1, help="moving-average window in points (default 1: none)")
     parser.add_argument("--tasks", nargs="+", default=None, help="tasks of Figs. 3 and 5 (default: all)")
@@ -656,15 +705,21 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     parser.add_argument("--freq-window-episodes", type=int, default=20, help="train-frequency window (episodes)")
     parser.add_argument("--dpi", type=int, default=120)
+    parser.add_argument(
+        "--results-dir",
+        default=None,
+        help="write each benchmark's final results as <DIR>/<env id>.json (default: results_<env id>.json in --out)",
+    )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     opts = PlotOptions(
-        out=Path(args.out),
+        out=Path(args.runs_dir if args.out is None else args.out),
         x_per_task=args.x == "per-task",
         smooth=args.smooth,
         tasks=args.tasks,
         matrix_times=args.matrix_times,
         freq_window_episodes=args.freq_window_episodes,
         dpi=args.dpi,
+        results_dir=None if args.results_dir is None else Path(args.results_dir),
     )
     written = make_plots(args.runs_dir, opts)
     print(f"Wrote {len(written)} files to {opts.out}/")

@@ -30,7 +30,7 @@ from typing import Any
 from sb3_mtte import run_info as run_info_mod
 
 SWEEP_FILE = "sweep.json"
-BUDGETS = ("full", "smoke")
+BUDGETS = ("full", "smoke", "cpu")
 
 
 def import_ray() -> Any:
@@ -224,7 +224,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
     parser.add_argument("--envs", nargs="+", required=True, help="benchmarks (MT10, MT20, toy-conflict, ...)")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="seeds (default 0)")
-    parser.add_argument("--budget", choices=BUDGETS, default="full", help="hyperparameter entry: full or smoke")
+    parser.add_argument("--budget", choices=BUDGETS, default="full", help="hyperparameter entry: full, smoke or cpu")
     parser.add_argument("--out", required=True, help="runs folder (the zoo's -f)")
     parser.add_argument("--address", default=None, help="Ray cluster address (default: start Ray locally)")
     parser.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")

@@ -96,7 +96,7 @@ ALGO_KEYS: dict[str, type[BaseAlgorithm]] = {
 ALGORITHM_CLASSES: dict[str, type[BaseAlgorithm]] = {"MTSAC": MTSAC, "MTSACTE": MTSACTE}
 """``algorithm_name`` stored in a checkpoint -> class."""
 
-BUDGET_SUFFIXES = ("smoke",)
+BUDGET_SUFFIXES = ("smoke", "cpu")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
 
 STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "toy-conflict", "toy-agree")
@@ -460,6 +460,8 @@ class MultiTaskCheckpointCallback(BaseCallback):
     def save(self, episode_boundary: bool) -> Checkpoint:
         """Take a checkpoint now (restarting the envs first when at an episode boundary)."""
         steps = self.num_timesteps
+        if self.model.logger.name_to_value:  # records waiting for the next dump would die with a killed process
+            self.model.logger.dump(steps)
         if episode_boundary:
             restart_envs(self.model, self.eval_env, self.seed, steps)
         paths = checkpoint_paths(self.save_path, steps)

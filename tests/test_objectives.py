@@ -1,19 +1,31 @@
-"""Unit tests of the paper's equations as pure functions (sb3_mtte.mtsacte.objectives), Eq. 1 and 4-14."""
+"""Unit tests of the paper's equations as pure functions (sb3_mtte.mtsacte.objectives and the clipped Q loss), Eq. 1,
+4-14 and 16, and of the weighted policy loss (Eq. 9) that trains theta."""
 
 from __future__ import annotations
 
+import copy
 import itertools
 import math
 
+import numpy as np
 import pytest
 import torch as th
+from conftest import (
+    disable_representation_updates,
+    fixed_randn_like,
+    kappa_benign_set,
+    loop_log_prob,
+    loop_q,
+    loop_split,
+    small_model_kwargs,
+)
 
-from sb3_mtte.common.losses import per_task_actor_loss
+from sb3_mtte import MTSACTE, make_mt_env
+from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss
 from sb3_mtte.mtsacte.objectives import (
     gaussian_kl_to_standard_normal,
     negative_transfer_measure,
     negative_transfer_objective,
-    policy_objective,
     representation_objective,
     sac_task_objective,
     select_benign_tasks,
@@ -122,32 +134,52 @@ def test_select_benign_tasks_smallest_mu():
     assert mask.tolist() == [False, True, False, True, False]
 
 
-def test_select_benign_tasks_ties_go_to_lower_index():
-    # mu = [2, 1, 1, 0], M = 2: kappa(1) = 3 (mu 0), kappa(2) = 1 (mu 1, tie with task 2 broken by index).
-    assert th.nonzero(select_benign_tasks(th.tensor([2, 1, 1, 0]), 2)).flatten().tolist() == [1, 3]
-    # All tied: the first M task indices.
-    assert select_benign_tasks(th.tensor([1, 1, 1, 1, 1]), 3).tolist() == [True, True, True, False, False]
-    # Repeated calls give the same answer (deterministic).
-    mu = th.tensor([2, 2, 0, 2, 0, 1, 1, 2])
-    masks = [select_benign_tasks(mu, 4) for _ in range(5)]
-    assert all(th.equal(m, masks[0]) for m in masks)
-    assert th.nonzero(masks[0]).flatten().tolist() == [2, 4, 5, 6]
+@pytest.mark.parametrize(
+    ("mu", "n_select", "expected"),
+    [
+        # kappa(1) = 3 (mu 0), kappa(2) = 1 or 2 (mu 1): the threshold is 1 and both tasks with mu 1 are benign.
+        ([2, 1, 1, 0], 2, [1, 2, 3]),
+        # All equal: every task is benign, C \ C_s is empty.
+        ([1, 1, 1, 1, 1], 3, [0, 1, 2, 3, 4]),
+        ([0, 0, 0, 0], 1, [0, 1, 2, 3]),
+        # Ties straddling the M-th value: sorted mu = 0, 1, 2, 2, 2, 3; the 3rd smallest is 2, shared by 3 tasks.
+        ([3, 1, 2, 2, 0, 2], 3, [1, 2, 3, 4, 5]),
+        ([3, 1, 2, 2, 0, 2], 2, [1, 4]),
+        # M = 1 with a tie at the minimum: both minimisers.
+        ([1, 0, 3, 0], 1, [1, 3]),
+        ([2, 0, 1], 1, [1]),
+        # The M-th value ends a run of ties exactly: no extra task; one more and all four tasks with mu 2 join.
+        ([2, 2, 0, 2, 0, 1, 1, 2], 4, [2, 4, 5, 6]),
+        ([2, 2, 0, 2, 0, 1, 1, 2], 5, list(range(8))),
+        ([4, 3, 4, 1], 3, [0, 1, 2, 3]),
+    ],
+)
+def test_select_benign_tasks_keeps_every_task_tied_with_the_mth_value(mu, n_select, expected):
+    """Eq. 7: C_s = {T_j | mu(T_j) <= mu(T_kappa(M))}, so |C_s| can exceed M."""
+    mask = select_benign_tasks(th.tensor(mu), n_select)
+    assert th.nonzero(mask).flatten().tolist() == expected
+    assert kappa_benign_set(mu, n_select) == set(expected)
 
 
 def test_select_benign_tasks_matches_kappa_definition():
-    """Eq. 7 written as the paper does: kappa(i) = argmin over the remaining tasks, lower index first."""
+    """Against the definition written as a loop (kappa(i) = argmin over the tasks not picked yet), random mu."""
     gen = th.Generator().manual_seed(3)
-    for _ in range(20):
+    larger_than_m = 0
+    for _ in range(200):
         n = int(th.randint(2, 9, (1,), generator=gen))
         mu = th.randint(0, n + 1, (n,), generator=gen)
-        m = int(th.randint(1, n, (1,), generator=gen))
-        chosen: list[int] = []
-        for _ in range(m):
-            remaining = [k for k in range(n) if k not in chosen]
-            chosen.append(min(remaining, key=lambda k: (int(mu[k]), k)))
+        m = int(th.randint(1, n + 1, (1,), generator=gen))
+        expected = kappa_benign_set(mu.tolist(), m)
         mask = select_benign_tasks(mu, m)
-        assert int(mask.sum()) == m
-        assert sorted(th.nonzero(mask).flatten().tolist()) == sorted(chosen)
+        assert set(th.nonzero(mask).flatten().tolist()) == expected, (mu.tolist(), m)
+        larger_than_m += len(expected) > m
+    assert larger_than_m > 20  # ties at the M-th value were exercised
+
+
+def test_select_benign_tasks_rejects_m_outside_1_to_n():
+    for n_select in (0, 5):
+        with pytest.raises(ValueError, match=r"n_select \(M\)"):
+            select_benign_tasks(th.tensor([0, 1, 2, 3]), n_select)
 
 
 # ----------------------------------------------------------------------------------------- weights (Eq. 8)
@@ -161,13 +193,14 @@ def test_task_weights_hand_example():
     th.testing.assert_close(task_weights(th.tensor([2, 1, 1, 0])), expected4.float(), rtol=1e-6, atol=1e-7)
 
 
-def test_task_weights_keep_float64():
-    expected = th.tensor(
-        [0.07232948812851327, 0.19661193324148185, 0.19661193324148185, 0.534446645388523], dtype=th.float64
-    )
-    weights = task_weights(th.tensor([2.0, 1.0, 1.0, 0.0], dtype=th.float64))
-    assert weights.dtype == th.float64
-    th.testing.assert_close(weights, expected.double(), rtol=1e-12, atol=0)
+def test_task_weights_dtype():
+    """Computed in the requested dtype (float32 by default), from integer or floating mu."""
+    expected = [0.07232948812851327, 0.19661193324148185, 0.19661193324148185, 0.534446645388523]
+    for mu in (th.tensor([2, 1, 1, 0]), th.tensor([2.0, 1.0, 1.0, 0.0], dtype=th.float64)):
+        assert task_weights(mu).dtype == th.float32
+        weights = task_weights(mu, th.float64)
+        assert weights.dtype == th.float64
+        th.testing.assert_close(weights, th.tensor(expected, dtype=th.float64), rtol=1e-12, atol=0)
 
 
 def test_task_weights_properties():
@@ -185,13 +218,62 @@ def test_task_weights_properties():
             assert weights[a] < weights[b]
 
 
-# ------------------------------------------------------------------------------------ J^policy (Eq. 9)
-def test_policy_objective_weighted_sum():
-    objectives = th.tensor([[1.0, 2.0, 3.0], [0.0, -1.0, 4.0]])
-    weights = th.tensor([0.5, 0.25, 0.25])
-    th.testing.assert_close(policy_objective(objectives, weights), th.tensor([1.75, 0.75]))
-    # One-hot weights select one task's objective.
-    th.testing.assert_close(policy_objective(objectives, th.tensor([0.0, 0.0, 1.0])), th.tensor([3.0, 4.0]))
+# ------------------------------------------------------------------------------- J^policy (Eq. 9) in training
+def test_actor_loss_is_the_weighted_sum_of_task_losses(monkeypatch):
+    """The loss that trains theta is sum_i w_i (-J_SAC,i) with the model's w (Eq. 8-9): with w = [0.1, 0.2, 0.3,
+    0.4] the actor's gradient in a training step equals the gradient of a plain per-sample loop over the same batch
+    and noise, where z ~ E_phi (detached), a = tanh(m + s eps), the min is over task i's twin critics (after their
+    update in the same step) and beta_i is task i's coefficient."""
+    model = MTSACTE("MlpPolicy", make_mt_env("toy-conflict", seed=0), **small_model_kwargs())
+    model.learn(200)
+    disable_representation_updates(model, monkeypatch)
+    weights = [0.1, 0.2, 0.3, 0.4]
+    model.task_weights = np.array(weights, dtype=np.float32)
+    with th.no_grad():
+        model.log_ent_coef.copy_(th.log(th.tensor([0.02, 0.05, 0.1, 0.2])))
+    beta = model.entropy_coefficients.clone()
+    monkeypatch.setattr(model.ent_coef_optimizer, "step", lambda *args, **kwargs: None)  # beta_i fixed
+    draw = fixed_randn_like(monkeypatch)
+    captured = {}
+    original_sample, original_step = model.replay_buffer.sample, model.actor.optimizer.step
+
+    def sample(*args, **kwargs):
+        captured["batch"] = original_sample(*args, **kwargs)
+        return captured["batch"]
+
+    def step(*args, **kwargs):
+        captured["grads"] = [p.grad.detach().clone() for p in model.actor.parameters()]
+        return original_step(*args, **kwargs)
+
+    monkeypatch.setattr(model.replay_buffer, "sample", sample)
+    monkeypatch.setattr(model.actor.optimizer, "step", step)
+    actor_before = copy.deepcopy(model.actor)
+    batch_size = 8
+    model.train(1, batch_size)
+
+    policy, obs = model.policy, captured["batch"].observations
+    n_rows, state_dim = obs.shape[0], policy.state_dim
+    z_noise, action_noise = draw((n_rows, policy.z_dim), obs.dtype), draw((n_rows, policy.action_dim), obs.dtype)
+
+    def reference_gradient(w):
+        loss = th.zeros(())
+        for row in range(n_rows):
+            task, state = row // batch_size, obs[row, :state_dim]
+            with th.no_grad():
+                mean_z, log_std_z = loop_split(policy.encoder(obs[row]))
+            z = mean_z + log_std_z.exp() * z_noise[row]
+            action, log_prob = loop_log_prob(*loop_split(actor_before(th.cat([state, z]))), action_noise[row])
+            q = [loop_q(policy, task * policy.n_critics + j, th.cat([state, action])) for j in range(policy.n_critics)]
+            loss = loss + w[task] / batch_size * (beta[task] * log_prob - th.stack(q).min())
+        return th.autograd.grad(loss, list(actor_before.parameters()))
+
+    expected = reference_gradient(weights)
+    for applied, reference in zip(captured["grads"], expected):
+        th.testing.assert_close(applied, reference, rtol=1e-4, atol=1e-6)
+    # Uniform weights give a clearly different gradient: the comparison sees the weights.
+    uniform = th.cat([g.flatten() for g in reference_gradient([0.25] * 4)])
+    flat = th.cat([g.flatten() for g in expected])
+    assert (uniform - flat).norm() > 0.05 * flat.norm()
 
 
 # -------------------------------------------------------------------------------- J^NT (Eq. 10-12)
@@ -203,6 +285,36 @@ def test_negative_transfer_objective_is_double_mean():
     after = th.randn(3, 5, generator=gen)
     loop = sum(sum(after[k, i] for i in range(5)) / 5 for k in range(3)) / 3
     th.testing.assert_close(negative_transfer_objective(after), loop)
+
+
+# ------------------------------------------------------------------------------ clipped Q loss (Eq. 15-16)
+def test_clipped_soft_q_loss_matches_loop_and_zeroes_large_samples():
+    gen = th.Generator().manual_seed(0)
+    n_critics, n, batch = 2, 3, 6
+    q_values = (3 * th.randn(n_critics, n, batch, generator=gen, dtype=th.float64)).requires_grad_()
+    target = 3 * th.randn(n, batch, generator=gen, dtype=th.float64)
+    clip = 2.0
+    loss = clipped_soft_q_loss(q_values, target, clip)
+    plain = clipped_soft_q_loss(q_values, target, None)
+    expected, expected_plain = th.zeros(n, dtype=th.float64), th.zeros(n, dtype=th.float64)
+    n_clipped = 0
+    for i in range(n):
+        for c in range(n_critics):
+            for b in range(batch):
+                sample = 0.5 * float(q_values[c, i, b].detach() - target[i, b]) ** 2
+                n_clipped += sample > clip
+                expected[i] += min(sample, clip) / batch
+                expected_plain[i] += sample / batch
+    assert 0 < n_clipped < n_critics * n * batch  # both regimes occur
+    th.testing.assert_close(loss.detach(), expected)
+    th.testing.assert_close(plain.detach(), expected_plain)
+    (gradient,) = th.autograd.grad(loss.sum(), q_values)
+    delta = (q_values - target).detach()
+    above = 0.5 * delta**2 > clip
+    assert th.equal(gradient[above], th.zeros_like(gradient[above]))
+    th.testing.assert_close(gradient[~above], delta[~above] / batch)
+    # q_loss_clip=None is the plain loss (Eq. 15), and a huge clip changes nothing.
+    th.testing.assert_close(clipped_soft_q_loss(q_values, target, 1e12), plain)
 
 
 # ------------------------------------------------------------------------------------ VAE (Eq. 13-14)

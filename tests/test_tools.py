@@ -5,10 +5,12 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import ENV, tiny_train
 
 from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
@@ -22,7 +24,6 @@ from sb3_mtte.run_info import (
     update_run_info,
     write_run_info,
 )
-from conftest import ENV, tiny_train
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 
@@ -211,6 +212,33 @@ def test_plot_real_tiny_runs(zoo_runs, tmp_path):
     names = {p.name for p in written}
     assert {f"success_{ENV}.png", f"per_task_{ENV}.png", f"nt_matrix_{ENV}_Ours.png", "table1.md"} <= names
     assert {f"bellman_{ENV}_SAC-MT.png", f"train_frequency_{ENV}_Ours.png", f"nt_{ENV}_Ours.png"} <= names
+
+
+def test_plot_writes_beside_the_runs_by_default(zoo_runs, tmp_path, monkeypatch):
+    runs = tmp_path / "runs"
+    shutil.copytree(zoo_runs, runs)
+    monkeypatch.chdir(tmp_path)
+    written = plot.main([str(runs)])
+    assert written and all(path.parent == runs for path in written)
+    assert not (tmp_path / "docs").exists()
+
+
+def test_results_summary_per_run(zoo_runs, tmp_path):
+    runs = tmp_path / "runs"
+    shutil.copytree(zoo_runs, runs)
+    for algo, mean in (("mtsacte", 0.25), ("mtsac_mt", 0.75)):
+        final = {"mean": mean, "per_task": dict.fromkeys(TASKS, mean), "timesteps": 123, "episodes_per_task": 10}
+        (runs / algo / f"{ENV}_1" / "success.json").write_text(json.dumps(final))
+    plot.main([str(runs), "--out", str(tmp_path / "figures"), "--results-dir", str(tmp_path / "results")])
+    records = json.loads((tmp_path / "results" / f"{ENV}.json").read_text())
+    assert [(r["algo"], r["label"], r["benchmark"], r["seed"], r["env_steps"]) for r in records] == [
+        ("mtsac_mt", "SAC-MT", ENV, 1, 123),
+        ("mtsacte", "Ours", ENV, 1, 123),
+    ]
+    assert [r["success"] for r in records] == [
+        {"mean": 0.75, "per_task": dict.fromkeys(TASKS, 0.75)},
+        {"mean": 0.25, "per_task": dict.fromkeys(TASKS, 0.25)},
+    ]
 
 
 def test_plot_without_runs(tmp_path):

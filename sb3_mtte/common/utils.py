@@ -41,17 +41,25 @@ def get_task_names(env: VecEnv) -> list[str]:
         return [f"task{i}" for i in range(env.num_envs)]
 
 
-def check_multitask_env(env: VecEnv, n_tasks: int | None = None) -> int:
+def check_multitask_env(env: VecEnv, n_tasks: int | None = None, min_tasks: int = 1) -> int:
     """Validate the multi-task layout and return the task count N.
 
     The layout is: one sub-env per task, a flat Box observation ending with the N-dim one-hot, and
-    sub-env i observing one-hot e_i after reset.
+    sub-env i observing one-hot e_i after reset. N = 1 (a single task followed by the one-hot ``[1.0]``) is
+    a valid layout.
 
     :param env: the vectorised env.
     :param n_tasks: the task count the caller expects (from a checkpoint, say), or None.
+    :param min_tasks: the smallest task count the caller accepts (2 for an algorithm that compares tasks).
     :raises ValueError: with what is wrong, when the env does not follow the layout.
     """
     n_envs = env.num_envs
+    if n_envs < min_tasks:
+        plural = "s" if min_tasks > 1 else ""
+        raise ValueError(
+            f"A multi-task env needs at least {min_tasks} task{plural} (one sub-env per task); got {n_envs} sub-env"
+            f"{'' if n_envs == 1 else 's'}."
+        )
     obs_space = env.observation_space
     if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
         raise ValueError(f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}.")
@@ -62,8 +70,6 @@ def check_multitask_env(env: VecEnv, n_tasks: int | None = None) -> int:
             f"Observation of size {obs_space.shape[0]} cannot hold a state and a {n_envs}-dim one-hot: "
             "the env must have one sub-env per task and append the task one-hot to the state."
         )
-    if n_envs < 2:
-        raise ValueError("A multi-task env needs at least 2 tasks (one sub-env per task); got 1 sub-env.")
     return n_envs
 
 

@@ -5,6 +5,9 @@ observation is the task's state followed by the one-hot e_i (float32), ``info["t
 ``info["is_success"]`` (success at any step of the episode) come with every step, and ``task_name`` is readable
 with ``env.get_attr("task_name")``. A new goal variation is drawn at every reset from an RNG seeded by the
 benchmark seed and the task index; ``env.env_method("set_eval_mode", True)`` cycles through them in order instead.
+
+A single task is a valid multi-task env (``make_mt_env(["reach-v3"])``, or any gymnasium env wrapped in
+:class:`OneHotTaskWrapper`): its observation ends with the one-hot ``[1.0]``.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from sb3_mtte.envs.metaworld_envs import (
     make_metaworld_env_fns,
 )
 from sb3_mtte.envs.toy import TOY_BENCHMARKS, ToyOraclePolicy, make_toy_env_fns, parse_toy_name
-from sb3_mtte.envs.wrappers import MultiTaskWrapper
+from sb3_mtte.envs.wrappers import MultiTaskWrapper, OneHotTaskWrapper
 
 BenchmarkSpec = str | Sequence[str]
 """A benchmark name ("MT10", "MT20", "MT50", a toy name) or a list of Meta-World v3 env names."""
@@ -42,8 +45,15 @@ def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list
     :param benchmark: see :func:`make_mt_env`.
     :param seed: benchmark seed.
     :param kwargs: see :func:`make_mt_env`.
-    :raises ValueError: for an unknown benchmark or env name.
+    :raises ValueError: for an unknown benchmark or env name, or no task at all.
     """
+    env_fns = _env_fns(benchmark, seed, **kwargs)
+    if not env_fns:
+        raise ValueError(f"A multi-task env needs at least 1 task; {benchmark!r} has none.")
+    return env_fns
+
+
+def _env_fns(benchmark: BenchmarkSpec, seed: int, **kwargs: Any) -> list[Callable[[], gym.Env]]:
     n_tasks = kwargs.pop("n_tasks", None)
     if isinstance(benchmark, str):
         toy = parse_toy_name(benchmark, n_tasks)
@@ -112,6 +122,7 @@ __all__ = [
     "BenchmarkSpec",
     "MetaWorldExpertPolicy",
     "MultiTaskWrapper",
+    "OneHotTaskWrapper",
     "ToyOraclePolicy",
     "get_task_names",
     "make_env_fns",

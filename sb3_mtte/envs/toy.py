@@ -102,7 +102,8 @@ def parse_toy_name(name: str, n_tasks: int | None = None) -> tuple[str, int] | N
     from_name = int(match.group(2)) if match.group(2) else None
     if from_name is not None and n_tasks is not None and from_name != n_tasks:
         raise ValueError(f"{name!r} names {from_name} tasks but n_tasks={n_tasks} was given.")
-    return canonical, from_name or n_tasks or DEFAULT_N_TASKS
+    count = from_name if from_name is not None else n_tasks
+    return canonical, DEFAULT_N_TASKS if count is None else count
 
 
 class PointGoalEnv(gym.Env):

@@ -1,4 +1,4 @@
-"""The wrapper that turns one single-task env into sub-env i of a multi-task benchmark.
+"""The wrappers that turn one single-task env into sub-env i of a multi-task benchmark.
 
 :class:`MultiTaskWrapper` gives every sub-env the same contract, for Meta-World and the toy envs alike:
 
@@ -8,6 +8,9 @@
 - attributes ``task_name`` and ``task_index``, readable with ``VecEnv.get_attr``;
 - optional termination at the first success (Meta-World's evaluation protocol does this; the success of an
   episode is the same, and evaluation is faster).
+
+:class:`OneHotTaskWrapper` applies the same contract to any gymnasium env with a flat Box observation, e.g.
+``Pendulum-v1`` as a 1-task env (observation = state followed by ``[1.0]``) for MTSAC.
 """
 
 from __future__ import annotations
@@ -30,8 +33,10 @@ class MultiTaskWrapper(gym.Wrapper):
     :param n_goals: number of goal variations of the task.
     :param set_goal: called with a goal-variation index in ``[0, n_goals)`` before every reset.
     :param state_space: bounds of the state part of the observation; the env's observation space when None.
-    :param seed: seed of the goal-variation RNG and of the env (passed to ``env.unwrapped.seed``).
-    :param success_key: key of the per-step success flag in the env's info dict.
+    :param seed: seed of the goal-variation RNG and of the env (passed to ``env.unwrapped.seed`` when the env
+        has that method, else to the env's next ``reset``).
+    :param success_key: key of the per-step success flag in the env's info dict; None when the env has no
+        success flag (then ``info["is_success"]`` is not reported).
     """
 
     def __init__(
@@ -44,7 +49,7 @@ class MultiTaskWrapper(gym.Wrapper):
         set_goal: Callable[[int], None],
         state_space: spaces.Box | None = None,
         seed: int | None = None,
-        success_key: str = "success",
+        success_key: str | None = "success",
     ) -> None:
         super().__init__(env)
         if not 0 <= task_index < n_tasks:
@@ -68,12 +73,16 @@ class MultiTaskWrapper(gym.Wrapper):
         self.goal_index = -1
         self._eval_resets = 0
         self._success = False
+        self._pending_seed: int | None = None
         self._goal_rng = np.random.default_rng(seed)
         if seed is not None:
             self.reseed(seed)
 
     def reseed(self, seed: int) -> None:
-        """Seed the goal-variation RNG and the underlying env (``env.unwrapped.seed`` when it has one).
+        """Seed the goal-variation RNG and the underlying env.
+
+        An env with a ``seed`` method (Meta-World, the toys) is seeded now; any other gymnasium env is seeded by
+        its next ``reset(seed=...)``.
 
         :param seed: the seed.
         """
@@ -81,6 +90,8 @@ class MultiTaskWrapper(gym.Wrapper):
         seed_fn = getattr(self.env.unwrapped, "seed", None)
         if callable(seed_fn):
             seed_fn(int(seed))
+        else:
+            self._pending_seed = int(seed)
         self.action_space.seed(int(seed))
 
     def set_eval_mode(self, enabled: bool) -> None:
@@ -121,15 +132,59 @@ class MultiTaskWrapper(gym.Wrapper):
         self.goal_index = self._next_goal()
         self._set_goal(self.goal_index)
         self._success = False
-        state, info = self.env.reset(options=options)
+        state, info = self.env.reset(seed=self._pending_seed, options=options)
+        self._pending_seed = None
         info = dict(info, task_index=self.task_index, goal_index=self.goal_index)
         return self._observation(state), info
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, SupportsFloat, bool, bool, dict]:
-        """Step the env, adding ``task_index`` and ``is_success`` (success at any step so far) to the info."""
+        """Step the env, adding ``task_index`` and, with a ``success_key``, ``is_success`` (success at any step so
+        far) to the info."""
         state, reward, terminated, truncated, info = self.env.step(action)
-        self._success = self._success or bool(info.get(self.success_key, False))
-        info = dict(info, task_index=self.task_index, is_success=self._success)
+        info = dict(info, task_index=self.task_index)
+        if self.success_key is not None:
+            self._success = self._success or bool(info.get(self.success_key, False))
+            info["is_success"] = self._success
         if self.terminate_on_success and self._success:
             terminated = True
         return self._observation(state), float(reward), bool(terminated), bool(truncated), info
+
+
+def _single_goal(index: int) -> None:
+    """Goal setter of an env without goal variations."""
+
+
+class OneHotTaskWrapper(MultiTaskWrapper):
+    """A plain gymnasium env as task ``task_index`` of an ``n_tasks``-task env; by default its only task.
+
+    The observation is the env's state followed by the one-hot e_i (``[1.0]`` for a single task, so that
+    ``Pendulum-v1`` becomes a 1-task env for MTSAC), ``info["task_index"]`` comes with every step, and
+    ``info["is_success"]`` too when the env reports a success flag under ``success_key``. The env has a single
+    goal variation; ``reset(seed=...)`` seeds it as gymnasium does.
+
+    :param env: the single-task env (flat Box observation).
+    :param task_index: index i of the task.
+    :param n_tasks: number of tasks N (size of the one-hot).
+    :param task_name: the task's name; the env's id (or class name) when None.
+    :param success_key: key of the env's per-step success flag in its info dict, or None when it has none.
+    """
+
+    def __init__(
+        self,
+        env: gym.Env,
+        task_index: int = 0,
+        n_tasks: int = 1,
+        task_name: str | None = None,
+        success_key: str | None = None,
+    ) -> None:
+        if task_name is None:
+            task_name = env.spec.id if env.spec is not None else type(env.unwrapped).__name__
+        super().__init__(
+            env,
+            task_index=task_index,
+            n_tasks=n_tasks,
+            task_name=task_name,
+            n_goals=1,
+            set_goal=_single_goal,
+            success_key=success_key,
+        )

@@ -38,7 +38,9 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
 class MTSAC(OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
-    Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task.
+    Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
+    single task (N = 1, e.g. a gymnasium env wrapped in :class:`~sb3_mtte.envs.wrappers.OneHotTaskWrapper`) and
+    ``"MlpPolicy"``, the update is SB3's SAC update.
 
     :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
         (SAC-soft-modular) or ``"IndependentPolicy"`` (SAC-Ind), or a policy class.
@@ -74,6 +76,8 @@ class MTSAC(OffPolicyAlgorithm):
         "SoftModularPolicy": SoftModularPolicy,
         "IndependentPolicy": IndependentPolicy,
     }
+    min_tasks: ClassVar[int] = 1
+    """Smallest task count N the algorithm accepts (1: a single task with the one-hot ``[1.0]`` is SAC)."""
     policy: MTSACPolicy
     replay_buffer: MultiTaskReplayBuffer | None
 
@@ -131,7 +135,7 @@ class MTSAC(OffPolicyAlgorithm):
             sde_support=False,
         )
         self.algorithm_name = type(self).__name__
-        self.n_tasks = check_multitask_env(self.env) if self.env is not None else 0
+        self.n_tasks = check_multitask_env(self.env, min_tasks=self.min_tasks) if self.env is not None else 0
         self.task_names: list[str] = get_task_names(self.env) if self.env is not None else []
         self.critic_arch = critic_arch
         self.q_loss_clip = q_loss_clip
@@ -212,7 +216,7 @@ class MTSAC(OffPolicyAlgorithm):
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
         if isinstance(env, VecEnv):
-            check_multitask_env(env, self.n_tasks)
+            check_multitask_env(env, self.n_tasks, min_tasks=self.min_tasks)
         super().set_env(env, force_reset)
         self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
 

@@ -17,13 +17,18 @@ from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
 from sb3_mtte.mtsacte.objectives import negative_transfer_measure, select_benign_tasks, task_weights
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
+from sb3_mtte.mtsacte.probe import task_probe_accuracy
 from sb3_mtte.mtsacte.transfer import (
     ESTIMATORS,
     RepresentationBatch,
     TaskObjectives,
+    TransferStatistics,
     representation_gradients,
+    significant_negative_transfer_measure,
     transfer_matrix,
 )
+
+NT_MEASURES = ("per_batch", "mean", "significant")
 
 SelfMTSACTE = TypeVar("SelfMTSACTE", bound="MTSACTE")
 
@@ -62,10 +67,17 @@ class MTSACTE(MTSAC):
     :param nt_chunk_size: ``vmap`` chunk over the virtual parameter sets theta^k: None evaluates all at once, 1 one
         theta^k per batched pass over all tasks; ``"auto"``: 1 on CPU (measured 2.3x faster there at N=10), None on
         GPUs.
+    :param nt_measure: how mu is read from the transfer matrices, beyond the paper when not the default.
+        ``"per_batch"`` (the paper, Eq. 6): each recomputation counts the signs of its own batch's matrix.
+        ``"mean"``: the j-th recomputation of an iteration counts the signs of the mean of the iteration's first j
+        matrices. ``"significant"``: as ``"mean"``, counting only entries below zero by more than two standard
+        errors over those batches. C_s and w at the end of an iteration then rest on all ``rep_gradient_steps``
+        batches.
     :param kwargs: every other argument of :class:`sb3_mtte.MTSAC` (learning_rate, batch_size = L per task, ...).
     """
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MTSACTEPolicy}
+    min_tasks: ClassVar[int] = 2  # Eq. 7 needs 1 <= M < N
     policy: MTSACTEPolicy
 
     def __init__(
@@ -95,6 +107,7 @@ class MTSACTE(MTSAC):
         use_vae: bool = True,
         use_topk: bool = True,
         nt_chunk_size: int | str | None = "auto",
+        nt_measure: str = "per_batch",
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -106,6 +119,10 @@ class MTSACTE(MTSAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        if policy_kwargs and "rep_learning_rate" in policy_kwargs:
+            raise ValueError(
+                "rep_learning_rate is an argument of MTSACTE (MTSACTE(..., rep_learning_rate=...)), not of policy_kwargs."
+            )
         if top_k < 1:
             raise ValueError(f"top_k (K) must be at least 1, got {top_k}.")
         if nt_estimator not in ESTIMATORS:
@@ -114,6 +131,8 @@ class MTSACTE(MTSAC):
             raise ValueError("nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0.")
         if not (nt_chunk_size in ("auto", None) or (isinstance(nt_chunk_size, int) and nt_chunk_size >= 1)):
             raise ValueError(f"nt_chunk_size must be 'auto', None or a positive int, got {nt_chunk_size!r}.")
+        if nt_measure not in NT_MEASURES:
+            raise ValueError(f"nt_measure must be one of {NT_MEASURES}, got {nt_measure!r}.")
         if iteration_length < 1 or rep_gradient_steps < 1:
             raise ValueError("iteration_length (H) and rep_gradient_steps must be at least 1.")
         replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
@@ -153,7 +172,8 @@ class MTSACTE(MTSAC):
         self.nt_step_size, self.c_vae, self.rep_learning_rate = nt_step_size, c_vae, rep_learning_rate
         self.iteration_length, self.rep_gradient_steps = iteration_length, rep_gradient_steps
         self.nt_estimator, self.nt_chunk_size = nt_estimator, nt_chunk_size
-        self._last_iteration_start: int | None = None
+        self.nt_measure = nt_measure
+        self._last_iteration: int | None = None
         if _init_setup_model:
             self._setup_model()
 
@@ -163,8 +183,9 @@ class MTSACTE(MTSAC):
             n = self.n_tasks
             self.mu = np.zeros(n, dtype=np.int64)
             self.selected_tasks = np.zeros(n, dtype=bool)
-            self.task_weights = np.full(n, 1.0 / n)
+            self.task_weights = np.full(n, 1.0 / n, dtype=np.float32)
             self.transfer_matrix = np.zeros((n, n))
+            self.task_probe_accuracy = float("nan")
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         return {**super()._policy_build_kwargs(), "rep_learning_rate": self.rep_learning_rate}
@@ -183,18 +204,20 @@ class MTSACTE(MTSAC):
         progress_bar: bool = False,
     ):
         if reset_num_timesteps:
-            self._last_iteration_start = None
+            self._last_iteration = None
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     # --------------------------------------------------------------------------------------------- training
     def task_weights_for_policy(self) -> th.Tensor:
         """w of Eq. 8 from the last recomputation (uniform before the first)."""
-        return th.as_tensor(self.task_weights, dtype=th.float32, device=self.device)
+        dtype = next(self.policy.actor.parameters()).dtype
+        return th.as_tensor(self.task_weights, dtype=dtype, device=self.device)
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
-        vector_step = self.num_timesteps // self.n_tasks
-        if self._last_iteration_start is None or vector_step - self._last_iteration_start >= self.iteration_length:
-            self._last_iteration_start = vector_step
+        # Iteration k of Algorithm 1 spans vector steps [k H, (k + 1) H): its first update recomputes C_s and w.
+        iteration = (self.num_timesteps // self.n_tasks) // self.iteration_length
+        if self._last_iteration is None or iteration != self._last_iteration:
+            self._last_iteration = iteration
             self.update_representation(batch_size)
         super().train(gradient_steps, batch_size)
 
@@ -206,7 +229,7 @@ class MTSACTE(MTSAC):
     def update_representation(self, batch_size: int) -> None:
         """``rep_gradient_steps`` updates of phi and the decoder by J^rep (Alg. 1), each recomputing mu, C_s, w."""
         self.policy.set_training_mode(True)
-        losses = []
+        losses, statistics = [], TransferStatistics()
         for _ in range(self.rep_gradient_steps):
             batch = self._representation_batch(batch_size)
             objectives = TaskObjectives(self.policy, batch, self.entropy_coefficients, self._chunk_size())
@@ -214,7 +237,8 @@ class MTSACTE(MTSAC):
             with th.no_grad():
                 z = objectives.embedding(encoder_params)[0]
                 transfer = transfer_matrix(objectives, z, self.nt_step_size, self.nt_estimator)
-            mu = negative_transfer_measure(transfer)
+            statistics.add(transfer)
+            transfer, mu = self._measure(transfer, statistics)
             selected = select_benign_tasks(mu, self.n_select)  # type: ignore[arg-type]
             loss, enc_grads, dec_grads = representation_gradients(
                 objectives,
@@ -228,8 +252,17 @@ class MTSACTE(MTSAC):
             self._apply_gradients(enc_grads, dec_grads)
             losses.append(loss.detach())
             self._store_negative_transfer(transfer, mu, selected)
+        self.task_probe_accuracy = task_probe_accuracy(z)
         self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
+
+    def _measure(self, transfer: th.Tensor, statistics: TransferStatistics) -> tuple[th.Tensor, th.Tensor]:
+        """The matrix that mu is read from (this batch's, or the iteration's mean), and mu."""
+        if self.nt_measure == "per_batch":
+            return transfer, negative_transfer_measure(transfer)
+        if self.nt_measure == "mean":
+            return statistics.mean, negative_transfer_measure(statistics.mean)
+        return statistics.mean, significant_negative_transfer_measure(statistics.mean, statistics.standard_error)
 
     def _chunk_size(self) -> int | None:
         if self.nt_chunk_size == "auto":
@@ -248,11 +281,13 @@ class MTSACTE(MTSAC):
         self.transfer_matrix = transfer.cpu().numpy().astype(np.float64)
         self.mu = mu.cpu().numpy().astype(np.int64)
         self.selected_tasks = selected.cpu().numpy()
-        self.task_weights = task_weights(mu.double()).cpu().numpy()
+        dtype = next(self.policy.actor.parameters()).dtype
+        self.task_weights = task_weights(mu, dtype).cpu().numpy()
 
     def _log_negative_transfer(self) -> None:
         self.logger.record("nt/n_selected", int(self.selected_tasks.sum()))
         self.logger.record("nt/mu_mean", float(self.mu.mean()))
+        self.logger.record("rep/task_probe_accuracy", self.task_probe_accuracy)
         for i in range(self.n_tasks):
             name = self._task_name(i)
             self.logger.record(task_log_key("nt/mu", i, name), int(self.mu[i]))
@@ -265,6 +300,7 @@ class MTSACTE(MTSAC):
                 "selected": self.selected_tasks.astype(int).tolist(),
                 "weights": self.task_weights.tolist(),
                 "transfer_matrix": self.transfer_matrix.tolist(),
+                "task_probe_accuracy": self.task_probe_accuracy,
             }
             with open(os.path.join(log_dir, "negative_transfer.jsonl"), "a") as file:
                 file.write(json.dumps(record) + "\n")

@@ -34,21 +34,23 @@ def negative_transfer_measure(transfer_matrix: th.Tensor) -> th.Tensor:
 
 
 def select_benign_tasks(mu: th.Tensor, n_select: int) -> th.Tensor:
-    """Eq. 7: C_s = the M tasks with the smallest mu; ties go to the lower task index (stable sort).
+    """Eq. 7: C_s = {T_j | mu(T_j) <= mu(T_kappa(M))}, kappa(M) being the task with the M-th smallest mu.
+
+    Every task tied with the M-th smallest value belongs to C_s, so |C_s| >= M, and C \\ C_s is empty when all mu
+    are equal.
 
     :return: ``(N,)`` boolean mask of C_s.
     """
-    order = th.sort(mu, stable=True).indices
-    mask = th.zeros_like(mu, dtype=th.bool)
-    mask[order[:n_select]] = True
-    return mask
+    if not 1 <= n_select <= mu.shape[-1]:
+        raise ValueError(f"n_select (M) must be in [1, N = {mu.shape[-1]}], got {n_select}.")
+    threshold = th.sort(mu, dim=-1).values[..., n_select - 1 : n_select]
+    return mu <= threshold
 
 
-def task_weights(mu: th.Tensor) -> th.Tensor:
-    """Eq. 8: w_i = exp(N - mu_i) / sum_j exp(N - mu_j)."""
+def task_weights(mu: th.Tensor, dtype: th.dtype = th.float32) -> th.Tensor:
+    """Eq. 8: w_i = exp(N - mu_i) / sum_j exp(N - mu_j), in ``dtype`` (the model's)."""
     n_tasks = mu.shape[-1]
-    mu = mu if mu.is_floating_point() else mu.to(th.get_default_dtype())
-    return th.softmax(n_tasks - mu, dim=-1)
+    return th.softmax(n_tasks - mu.to(dtype), dim=-1)
 
 
 def policy_objective(task_objectives: th.Tensor, weights: th.Tensor) -> th.Tensor:

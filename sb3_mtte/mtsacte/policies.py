@@ -54,7 +54,14 @@ class MTSACTEPolicy(MultiTaskPolicy):
         if critic_arch != "per_task":
             raise ValueError("MTSACTE uses one twin critic per task (critic_arch='per_task').")
         super().__init__(
-            observation_space, action_space, n_tasks, net_arch, activation_fn, n_critics, optimizer_class, optimizer_kwargs
+            observation_space,
+            action_space,
+            n_tasks,
+            net_arch,
+            activation_fn,
+            n_critics,
+            optimizer_class,
+            optimizer_kwargs,
         )
         self.z_dim, self.rep_learning_rate = z_dim, rep_learning_rate
         act, state_dim, action_dim = activation_fn, self.state_dim, self.action_dim
@@ -93,7 +100,11 @@ class MTSACTEPolicy(MultiTaskPolicy):
         self.training = mode
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        return {**super()._get_constructor_parameters(), "z_dim": self.z_dim, "rep_learning_rate": self.rep_learning_rate}
+        return {
+            **super()._get_constructor_parameters(),
+            "z_dim": self.z_dim,
+            "rep_learning_rate": self.rep_learning_rate,
+        }
 
 
 MlpPolicy = MTSACTEPolicy

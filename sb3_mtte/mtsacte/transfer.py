@@ -139,7 +139,9 @@ def exact_nt_objective(objectives: TaskObjectives, theta: Params, z: th.Tensor, 
     return negative_transfer_objective(after)
 
 
-def first_order_nt_objective(objectives: TaskObjectives, theta: Params, z: th.Tensor, harmful: th.Tensor, step_size: float):
+def first_order_nt_objective(
+    objectives: TaskObjectives, theta: Params, z: th.Tensor, harmful: th.Tensor, step_size: float
+):
     """Eq. 11-12 to first order in alpha, linear in N: mean_i J_i(theta) + alpha * g_C . g_H, where g_C and g_H
     are the mean task gradients over all tasks and over C \\ C_s (one forward pass, two backward passes)."""
     values, pullback = vjp(lambda t: objectives.all_tasks(t, z), theta)
@@ -183,7 +185,9 @@ def representation_loss(
     return -representation_objective(j_nt, j_vae, c_vae)
 
 
-def representation_gradients(objectives: TaskObjectives, harmful_tasks: th.Tensor, **kwargs) -> tuple[th.Tensor, Params, Params]:
+def representation_gradients(
+    objectives: TaskObjectives, harmful_tasks: th.Tensor, **kwargs
+) -> tuple[th.Tensor, Params, Params]:
     """Loss -J^rep and its gradients w.r.t. the encoder and decoder parameters."""
     encoder_params, decoder_params = objectives.phi()
 
@@ -193,3 +197,35 @@ def representation_gradients(objectives: TaskObjectives, harmful_tasks: th.Tenso
 
     (enc_grads, dec_grads), loss = grad(loss_with_aux, argnums=(0, 1), has_aux=True)(encoder_params, decoder_params)
     return loss, enc_grads, dec_grads
+
+
+class TransferStatistics:
+    """Running mean and standard error of the transfer matrices measured on an iteration's batches."""
+
+    def __init__(self) -> None:
+        self.count = 0
+        self.total: th.Tensor | None = None
+        self.total_squares: th.Tensor | None = None
+
+    def add(self, matrix: th.Tensor) -> None:
+        self.count += 1
+        self.total = matrix.clone() if self.total is None else self.total + matrix
+        squares = matrix.pow(2)
+        self.total_squares = squares if self.total_squares is None else self.total_squares + squares
+
+    @property
+    def mean(self) -> th.Tensor:
+        return self.total / self.count  # type: ignore[operator]
+
+    @property
+    def standard_error(self) -> th.Tensor:
+        """Standard error of the mean (zero after a single batch)."""
+        if self.count < 2:
+            return th.zeros_like(self.total)  # type: ignore[arg-type]
+        variance = (self.total_squares / self.count - self.mean.pow(2)).clamp_min(0) * self.count / (self.count - 1)
+        return (variance / self.count).sqrt()
+
+
+def significant_negative_transfer_measure(mean: th.Tensor, standard_error: th.Tensor, z: float = 2.0) -> th.Tensor:
+    """mu counting only the entries [k, i] whose mean over batches is below zero by more than z standard errors."""
+    return (mean + z * standard_error < 0).sum(dim=1)

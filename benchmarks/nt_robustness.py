@@ -1,0 +1,163 @@
+"""How often mu singles out the conflicting task of toy-conflict, for each ``nt_measure`` of MTSACTE.
+
+For each seed and each measure (``per_batch``: the paper; ``mean`` and ``significant``: over an iteration's batches),
+trains MTSACTE on ``toy-conflict`` with its zoo settings (``zoo_configs/mtsacte.yml``) and records mu and w after
+every iteration's J^rep steps (the values that weight the policy during the iteration). Reports, per measure, the
+fraction of iterations in which the conflicting task (the last one) has the strictly largest mu (over the whole run
+and over its first quarter), its mean weight, the final success (10 episodes per task) and the env steps until the
+periodic evaluation first reaches 90%. Prints one JSON object; ``--out FILE`` also writes it.
+
+    python benchmarks/nt_robustness.py --seeds 0 1 2 --out docs/results/nt_robustness.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch as th
+import yaml
+from stable_baselines3.common.callbacks import BaseCallback
+
+from sb3_mtte import MTSACTE, __version__, evaluate_success, make_mt_env
+
+BENCHMARK = "toy-conflict"
+LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
+
+
+def toy_settings() -> tuple[int, dict[str, Any]]:
+    """Budget and MTSACTE arguments of the ``toy-conflict`` entry of the zoo config."""
+    path = Path(__file__).resolve().parents[1] / "zoo_configs" / "mtsacte.yml"
+    entry = dict(yaml.safe_load(path.read_text())[BENCHMARK])
+    budget = int(entry["n_timesteps"])
+    kwargs = {key: value for key, value in entry.items() if key not in LAUNCHER_KEYS}
+    kwargs["policy_kwargs"] = eval(kwargs["policy_kwargs"], {"dict": dict})  # a literal dict(...) of the config
+    return budget, kwargs
+
+
+MEASURES = ("per_batch", "mean", "significant")
+EVAL_EVERY = 500  # vector steps
+
+
+class SuccessTrace(BaseCallback):
+    """Mean success (5 episodes per task) every ``EVAL_EVERY`` vector steps."""
+
+    def __init__(self, seed: int) -> None:
+        super().__init__()
+        self.seed, self.trace = seed, []
+
+    def _on_step(self) -> bool:
+        n_tasks = self.training_env.num_envs
+        if (self.num_timesteps // n_tasks) % EVAL_EVERY == 0:
+            result = evaluate_success(self.model, BENCHMARK, episodes_per_task=5, seed=self.seed + 2000)
+            self.trace.append((self.num_timesteps, result.mean))
+        return True
+
+
+def strictly_largest(mu: np.ndarray) -> np.ndarray:
+    last = mu.shape[1] - 1
+    return mu[:, last] > np.delete(mu, last, axis=1).max(axis=1)
+
+
+def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any]) -> dict[str, Any]:
+    env = make_mt_env(BENCHMARK, seed=seed)
+    model = MTSACTE("MlpPolicy", env, seed=seed, device="cpu", nt_measure=measure, **kwargs)
+    records: list[dict[str, Any]] = []
+    update = model.update_representation
+
+    def recorded_update(batch_size: int) -> None:
+        update(batch_size)
+        records.append({"mu": model.mu.tolist(), "weights": model.task_weights.tolist()})
+
+    model.update_representation = recorded_update  # type: ignore[method-assign]
+    start = time.perf_counter()
+    trace = SuccessTrace(seed)
+    model.learn(budget, callback=trace)
+    seconds = time.perf_counter() - start
+    success = evaluate_success(model, BENCHMARK, episodes_per_task=10, seed=seed + 1000)
+    env.close()
+    mu = np.array([r["mu"] for r in records])
+    weights = np.array([r["weights"] for r in records])
+    singled_out = strictly_largest(mu)
+    reached = [steps for steps, success in trace.trace if success >= 0.9]
+    return {
+        "seed": seed,
+        "nt_measure": measure,
+        "iterations": len(records),
+        "conflicting_strictly_largest": float(singled_out.mean()),
+        "conflicting_strictly_largest_first_quarter": float(singled_out[: max(1, len(records) // 4)].mean()),
+        "conflicting_mean_weight": float(weights[:, -1].mean()),
+        "mean_mu": mu.mean(axis=0).tolist(),
+        "mean_weights": weights.mean(axis=0).tolist(),
+        "success_trace": trace.trace,
+        "env_steps_to_90": reached[0] if reached else None,
+        "success": success.as_dict(),
+        "train_seconds": round(seconds, 1),
+    }
+
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    summary = {}
+    for measure in MEASURES:
+        group = [r for r in runs if r["nt_measure"] == measure]
+        if not group:
+            continue
+        summary[measure] = {
+            key: [float(np.mean(values)), float(np.std(values))]
+            for key, values in {
+                "conflicting_strictly_largest": [r["conflicting_strictly_largest"] for r in group],
+                "conflicting_strictly_largest_first_quarter": [
+                    r["conflicting_strictly_largest_first_quarter"] for r in group
+                ],
+                "conflicting_mean_weight": [r["conflicting_mean_weight"] for r in group],
+                "success": [r["success"]["mean"] for r in group],
+                "env_steps_to_90": [r["env_steps_to_90"] or float("nan") for r in group],
+            }.items()
+        }
+        summary[measure]["conflicting_mu_largest_on_average"] = sum(
+            int(np.argmax(r["mean_mu"]) == len(r["mean_mu"]) - 1) for r in group
+        )
+        summary[measure]["conflicting_weight_smallest_on_average"] = sum(
+            int(np.argmin(r["mean_weights"]) == len(r["mean_weights"]) - 1) for r in group
+        )
+        summary[measure]["seeds"] = len(group)
+    return summary
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--measures", nargs="+", choices=MEASURES, default=list(MEASURES))
+    parser.add_argument("--num-threads", type=int, default=1)
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    args = parser.parse_args()
+    th.set_num_threads(args.num_threads)
+    budget, kwargs = toy_settings()
+    runs = [run(seed, measure, budget, kwargs) for seed in args.seeds for measure in args.measures]
+    result = {
+        "benchmark": BENCHMARK,
+        "env_steps": budget,
+        "settings": {k: repr(v) for k, v in kwargs.items()},
+        "summary": summarise(runs),
+        "runs": runs,
+        "versions": {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()},
+        "summary_format": "[mean, std] over seeds; counts are out of `seeds`",
+        "command": "python benchmarks/nt_robustness.py --seeds "
+        + " ".join(map(str, args.seeds))
+        + " --measures "
+        + " ".join(args.measures),
+    }
+    text = json.dumps(result, indent=1)
+    print(text)
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text + "\n")
+
+
+if __name__ == "__main__":
+    main()

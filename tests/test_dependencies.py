@@ -1,0 +1,84 @@
+"""Every module that the README's commands import comes from a declared runtime dependency of sb3-mtte."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
+
+from packaging.requirements import Requirement
+from packaging.utils import canonicalize_name
+
+# What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate` and `sb3_mtte.plot` import when they
+# run (the `[ray]` extra of `sb3_mtte.sweep` is not a runtime dependency).
+COMMAND_MODULES = [
+    "sb3_mtte",
+    "sb3_mtte.zoo",
+    "sb3_mtte.evaluate",
+    "sb3_mtte.plot",
+    "rl_zoo3.train",
+    "rl_zoo3.enjoy",
+    "rl_zoo3.record_video",
+    "rl_zoo3.exp_manager",
+    "moviepy.video.io.ImageSequenceClip",
+    "matplotlib.pyplot",
+    "tensorboard.backend.event_processing.event_accumulator",
+]
+
+
+def requirement_closure(name: str) -> set[str]:
+    """Canonical names of ``name`` and everything its base (no-extra) requirements pull in, recursively."""
+    seen: set[str] = set()
+    stack = [name]
+    while stack:
+        current = canonicalize_name(stack.pop())
+        if current in seen:
+            continue
+        seen.add(current)
+        try:
+            requirements = distribution(current).requires or []
+        except PackageNotFoundError:
+            continue
+        for line in requirements:
+            requirement = Requirement(line)
+            if requirement.marker is None or requirement.marker.evaluate({"extra": ""}):
+                stack.append(requirement.name)
+    return seen
+
+
+def undeclared_modules() -> list[str]:
+    """Top-level modules installed here only by distributions outside sb3-mtte's requirement closure."""
+    declared = requirement_closure("sb3-mtte")
+    return sorted(
+        module
+        for module, owners in packages_distributions().items()
+        if module not in sys.stdlib_module_names and not {canonicalize_name(d) for d in owners} & declared
+    )
+
+
+def import_as_on_a_plain_install(modules: list[str], blocked: list[str]) -> subprocess.CompletedProcess:
+    """Import ``modules`` in a fresh interpreter where the ``blocked`` top-level modules cannot be found, as after
+    ``pip install -e .`` alone (optional imports guarded by try/except still pass)."""
+    code = (
+        "import importlib, sys\n"
+        f"BLOCKED = set({blocked!r})\n"
+        "class Blocker:\n"
+        "    def find_spec(self, name, path=None, target=None):\n"
+        "        if name.split('.')[0] in BLOCKED:\n"
+        "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
+        "sys.meta_path.insert(0, Blocker())\n"
+        f"for name in {modules!r}: importlib.import_module(name)\n"
+    )
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+
+
+def test_command_imports_need_only_declared_dependencies():
+    result = import_as_on_a_plain_install(COMMAND_MODULES, undeclared_modules())
+    assert result.returncode == 0, f"a command needs an undeclared dependency:\n{result.stderr[-2000:]}"
+
+
+def test_a_missing_dependency_is_caught():
+    """The check can fail: with stable-baselines3 treated as undeclared, importing the package breaks."""
+    result = import_as_on_a_plain_install(["sb3_mtte"], ["stable_baselines3"])
+    assert result.returncode != 0 and "stable_baselines3" in result.stderr
+    assert "pytest" not in requirement_closure("sb3-mtte")
