@@ -256,9 +256,13 @@ def plot(out: Path, figure: Path) -> None:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import FuncFormatter
 
     records = load_runs(out)
     fig, axes = plt.subplots(1, len(PANELS), figsize=(5 * len(PANELS), 3.8))
+    fig.suptitle(
+        "MTSAC with one task vs SB3 SAC: identical hyperparameters, budget and seeds (0-2); mean ± std", fontsize=10
+    )
     for ax, (env_id, key, title) in zip(axes, PANELS):
         for algo in ALGOS:
             group = [r for r in records if r["env"] == env_id and r["algo"] == algo]
@@ -271,6 +275,7 @@ def plot(out: Path, figure: Path) -> None:
         if key == "success":
             ax.set_ylim(-0.02, 1.02)
         ax.set_title(title)
+        ax.xaxis.set_major_formatter(FuncFormatter(lambda x, _: f"{x / 1000:g}k"))
         ax.set_xlabel("env steps")
         ax.set_ylabel(key)
         ax.grid(alpha=0.3)

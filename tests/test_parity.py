@@ -287,7 +287,8 @@ def test_pendulum_learns_as_with_sb3_sac():
     """rl-zoo3's Pendulum-v1 SAC setting (20k steps, lr 1e-3), identical for both, seeds 0-2.
 
     Bar: both reach a mean final return > -400 (a random policy scores about -1200), and the mean final
-    returns differ by less than 150 (see the report of the measured seed spread).
+    returns differ by less than 50. Measured (benchmarks/sac_parity.py): MTSAC -134.9 +- 10.1, SAC -135.5 +- 9.3
+    over seeds 0-2, so the standard error of the difference of the two means is about 8: 50 is six of them.
     """
     parity = load_parity_script()
     th.set_num_threads(1)
@@ -298,4 +299,4 @@ def test_pendulum_learns_as_with_sb3_sac():
             final[algo].append(record["curve"]["return"][-1])
     means = {algo: float(np.mean(values)) for algo, values in final.items()}
     assert min(means.values()) > -400, final
-    assert abs(means["mtsac"] - means["sac"]) < 150, final
+    assert abs(means["mtsac"] - means["sac"]) < 50, final
