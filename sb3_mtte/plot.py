@@ -536,12 +536,17 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
                     ax.plot(series[0], series[1], label=short_task_name(names[i]), lw=1)
             ax.set_ylabel(title)
             ax.grid(alpha=0.3)
-        probe = _mean_series([r for r in runs if _has_probe(r)], _probe_series, opts, opts.smooth)
-        if probe is not None:
-            axes[2].plot(probe[0], probe[1], color="k", lw=1)
+        for key, style, name in (
+            ("task_probe_accuracy", "-", "z ~ E_phi (what the policy sees)"),
+            ("task_probe_accuracy_of_mean", ":", "mean of E_phi"),
+        ):
+            with_key = [r for r in runs if all(key in record for record in r.nt_records)]
+            probe = _mean_series(with_key, lambda r, key=key: _nt_arrays(r, key), opts, opts.smooth)
+            if probe is not None:
+                axes[2].plot(probe[0], probe[1], color="k", ls=style, lw=1, label=name)
         axes[2].axhline(1.0 / n, color="gray", ls="--", lw=0.8, label="chance (1/N)")
         axes[2].set_ylim(-0.02, 1.02)
-        axes[2].set_ylabel("task probe accuracy of z")
+        axes[2].set_ylabel("linear probe of the task")
         axes[2].legend(fontsize=7, loc="lower right")
         axes[2].grid(alpha=0.3)
         axes[2].set_xlabel(_xlabel(opts))
@@ -572,15 +577,6 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
             fontsize=9,
         )
         _save(fig, opts.out / f"nt_matrix_{_safe(bench)}_{_safe(label)}.png", opts, written)
-
-
-def _has_probe(run: Run) -> bool:
-    return all("task_probe_accuracy" in record for record in run.nt_records)
-
-
-def _probe_series(run: Run) -> Series:
-    """Held-out accuracy of the linear probe of the task from z, per recomputation."""
-    return _nt_arrays(run, "task_probe_accuracy")
 
 
 def _nt_series(run: Run, key: str, task: int) -> Series:

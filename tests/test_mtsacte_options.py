@@ -162,9 +162,24 @@ def test_model_records_the_probe(toy_env, tmp_path):
     assert np.isnan(model.task_probe_accuracy)
     model.set_logger(configure(str(tmp_path), ["csv"]))
     model.learn(60 * N_TASKS)
-    assert 0.0 <= model.task_probe_accuracy <= 1.0
+    assert 0.0 <= model.task_probe_accuracy <= 1.0 and 0.0 <= model.task_probe_accuracy_of_mean <= 1.0
     records = [json.loads(line) for line in (tmp_path / "negative_transfer.jsonl").read_text().splitlines()]
     assert records and records[-1]["task_probe_accuracy"] == model.task_probe_accuracy
+    assert records[-1]["task_probe_accuracy_of_mean"] == model.task_probe_accuracy_of_mean
+    assert records[-1]["z_std"] == model.z_std
+
+
+def test_probe_and_z_std_read_the_last_batch_before_its_update(toy_env, monkeypatch):
+    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(rep_gradient_steps=1, iteration_length=10**6))
+    model.learn(60 * N_TASKS)
+    batch = model._representation_batch(8)
+    monkeypatch.setattr(model, "_representation_batch", lambda batch_size: batch)
+    with th.no_grad():
+        mean, log_std = model.policy.embedding_params(batch.obs)
+    model.update_representation(8)
+    assert model.z_std == pytest.approx(float(log_std.exp().mean()), rel=1e-6)
+    assert model.task_probe_accuracy_of_mean == task_probe_accuracy(mean)
+    assert model.task_probe_accuracy == task_probe_accuracy(mean + log_std.exp() * batch.z_noise)
 
 
 def test_significant_measure_counts_only_consistent_signs(toy_env, monkeypatch):

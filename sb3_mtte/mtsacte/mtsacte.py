@@ -185,7 +185,7 @@ class MTSACTE(MTSAC):
             self.selected_tasks = np.zeros(n, dtype=bool)
             self.task_weights = np.full(n, 1.0 / n, dtype=np.float32)
             self.transfer_matrix = np.zeros((n, n))
-            self.task_probe_accuracy = float("nan")
+            self.task_probe_accuracy = self.task_probe_accuracy_of_mean = self.z_std = float("nan")
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         return {**super()._policy_build_kwargs(), "rep_learning_rate": self.rep_learning_rate}
@@ -235,7 +235,7 @@ class MTSACTE(MTSAC):
             objectives = TaskObjectives(self.policy, batch, self.entropy_coefficients, self._chunk_size())
             encoder_params, _ = objectives.phi()
             with th.no_grad():
-                z = objectives.embedding(encoder_params)[0]
+                z, z_mean, z_log_std = objectives.embedding(encoder_params)
                 transfer = transfer_matrix(objectives, z, self.nt_step_size, self.nt_estimator)
             statistics.add(transfer)
             transfer, mu = self._measure(transfer, statistics)
@@ -253,6 +253,8 @@ class MTSACTE(MTSAC):
             losses.append(loss.detach())
             self._store_negative_transfer(transfer, mu, selected)
         self.task_probe_accuracy = task_probe_accuracy(z)
+        self.task_probe_accuracy_of_mean = task_probe_accuracy(z_mean)
+        self.z_std = float(z_log_std.exp().mean())
         self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
 
@@ -288,6 +290,8 @@ class MTSACTE(MTSAC):
         self.logger.record("nt/n_selected", int(self.selected_tasks.sum()))
         self.logger.record("nt/mu_mean", float(self.mu.mean()))
         self.logger.record("rep/task_probe_accuracy", self.task_probe_accuracy)
+        self.logger.record("rep/task_probe_accuracy_of_mean", self.task_probe_accuracy_of_mean)
+        self.logger.record("rep/z_std", self.z_std)
         for i in range(self.n_tasks):
             name = self._task_name(i)
             self.logger.record(task_log_key("nt/mu", i, name), int(self.mu[i]))
@@ -301,6 +305,8 @@ class MTSACTE(MTSAC):
                 "weights": self.task_weights.tolist(),
                 "transfer_matrix": self.transfer_matrix.tolist(),
                 "task_probe_accuracy": self.task_probe_accuracy,
+                "task_probe_accuracy_of_mean": self.task_probe_accuracy_of_mean,
+                "z_std": self.z_std,
             }
             with open(os.path.join(log_dir, "negative_transfer.jsonl"), "a") as file:
                 file.write(json.dumps(record) + "\n")
