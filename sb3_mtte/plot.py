@@ -551,7 +551,10 @@ def plot_negative_transfer(bench: str, groups: dict[str, list[Run]], opts: PlotO
         axes[2].grid(alpha=0.3)
         axes[2].set_xlabel(_xlabel(opts))
         axes[0].legend(fontsize=7, ncol=max(1, math.ceil(n / 10)), loc="upper left", bbox_to_anchor=(1.0, 1.0))
-        fig.suptitle(f"{bench}, {label}: negative-transfer measure and task weights (mean over seeds)", fontsize=10)
+        fig.suptitle(
+            f"{bench}, {label}: negative-transfer measure, task weights and task information in z (mean over seeds)",
+            fontsize=10,
+        )
         _save(fig, opts.out / f"nt_{_safe(bench)}_{_safe(label)}.png", opts, written)
         # heatmaps
         times = _matrix_times(runs, opts)
