@@ -129,6 +129,19 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
     return summary
 
 
+def versions() -> dict[str, str]:
+    return {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()}
+
+
+def print_and_write(result: dict[str, Any], out: Path | None) -> None:
+    """Print the result as JSON and, when ``out`` is given, write it there too."""
+    text = json.dumps(result, indent=1)
+    print(text)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text + "\n")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
@@ -145,18 +158,14 @@ def main() -> None:
         "settings": {k: repr(v) for k, v in kwargs.items()},
         "summary": summarise(runs),
         "runs": runs,
-        "versions": {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()},
+        "versions": versions(),
         "summary_format": "[mean, std] over seeds; counts are out of `seeds`",
         "command": "python benchmarks/nt_robustness.py --seeds "
         + " ".join(map(str, args.seeds))
         + " --measures "
         + " ".join(args.measures),
     }
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    print_and_write(result, args.out)
 
 
 if __name__ == "__main__":

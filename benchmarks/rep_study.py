@@ -11,16 +11,14 @@ standard deviation; and the mean success (5 episodes per task) every 500 vector 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch as th
-from nt_robustness import BENCHMARK, SuccessTrace, toy_settings
+from nt_robustness import BENCHMARK, SuccessTrace, print_and_write, toy_settings, versions
 
-from sb3_mtte import MTSACTE, __version__, make_mt_env
+from sb3_mtte import MTSACTE, make_mt_env
 
 GRID: dict[str, dict[str, Any]] = {
     "zoo toy settings": {},
@@ -85,14 +83,10 @@ def main() -> None:
         "base_settings": {k: repr(v) for k, v in kwargs.items()},
         "summary": summary,
         "runs": runs,
-        "versions": {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()},
+        "versions": versions(),
         "command": f"python benchmarks/rep_study.py --seeds {' '.join(map(str, args.seeds))}",
     }
-    text = json.dumps(result, indent=1)
-    print(text)
-    if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text + "\n")
+    print_and_write(result, args.out)
 
 
 if __name__ == "__main__":
