@@ -24,15 +24,16 @@ from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_mtte import MTSAC, MTSACTE, __version__
+from sb3_mtte.experiments.variants import VARIANTS as REGISTERED_VARIANTS
 
 STATE_DIM, ACTION_DIM = 39, 4
 VARIANTS = {
-    "MTSAC-MT": ("MlpPolicy", {}),
-    "MTSAC-MT-shared-critic": ("MlpPolicy", {"critic_arch": "shared"}),
-    "MTSAC-MT-MH": ("MultiHeadPolicy", {}),
-    "MTSAC-soft-modular": ("SoftModularPolicy", {}),
-    "MTSAC-Ind": ("IndependentPolicy", {}),
+    f"MTSAC-{variant.label.removeprefix('SAC-')}": (variant.policy, dict(variant.overrides))
+    for variant in REGISTERED_VARIANTS.values()
+    if variant.algorithm is MTSAC
 }
+"""Label -> (policy, keyword arguments) of every MTSAC variant of the registry (default network sizes)."""
+VARIANTS["MTSAC-MT-shared-critic"] = ("MlpPolicy", {"critic_arch": "shared"})
 
 
 class SyntheticTaskEnv(gym.Env):
@@ -107,13 +108,23 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
     rows = 4 * batch_per_task
     updates: dict[str, Callable[[], None]] = {}
 
-    sac = quiet(SAC("MlpPolicy", synthetic_env(n_tasks), policy_kwargs=dict(net_arch=[400, 400]),
-                    buffer_size=rows * n_tasks, device=device, seed=0))
+    sac = quiet(
+        SAC(
+            "MlpPolicy",
+            synthetic_env(n_tasks),
+            policy_kwargs={"net_arch": [400, 400]},
+            buffer_size=rows * n_tasks,
+            device=device,
+            seed=0,
+        )
+    )
     fill_buffer(sac, rows)
     updates["SB3-SAC"] = lambda: sac.train(1, total_batch)
 
     for label, (policy, kwargs) in VARIANTS.items():
-        model = quiet(MTSAC(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0, **kwargs))
+        model = quiet(
+            MTSAC(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0, **kwargs)
+        )
         fill_buffer(model, rows)
         updates[label] = lambda m=model: m.train(1, batch_per_task)
 
@@ -125,8 +136,17 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
 
     recomputations: dict[str, Callable[[], None]] = {}
     for estimator in ("virtual_step", "gradient_dot"):
-        model = quiet(MTSACTE("MlpPolicy", synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0,
-                              nt_estimator=estimator, rep_gradient_steps=1))
+        model = quiet(
+            MTSACTE(
+                "MlpPolicy",
+                synthetic_env(n_tasks),
+                buffer_size=rows * n_tasks,
+                device=device,
+                seed=0,
+                nt_estimator=estimator,
+                rep_gradient_steps=1,
+            )
+        )
         fill_buffer(model, rows)
         recomputations[f"MTSACTE-recompute-{estimator}"] = lambda m=model: m.update_representation(batch_per_task)
     results.update(interleaved_medians(recomputations, max(3, repeats // 3), warmup=1))
@@ -168,7 +188,10 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--iteration-length", type=int, default=500)
     parser.add_argument("--rep-gradient-steps", type=int, default=10)
     parser.add_argument(
-        "--end-to-end", type=int, default=0, help="also time real MT10 learn() of MTSAC and MTSACTE over this many vector steps"
+        "--end-to-end",
+        type=int,
+        default=0,
+        help="also time real MT10 learn() of MTSAC and MTSACTE over this many vector steps",
     )
     args = parser.parse_args(argv)
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device

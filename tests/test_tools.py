@@ -14,8 +14,8 @@ from conftest import ENV, tiny_train
 
 from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.run_info import (
-    algo_label,
+from sb3_mtte.experiments import runs as plot_runs
+from sb3_mtte.experiments.run_info import (
     append_resume,
     collect_run_info,
     git_info,
@@ -24,6 +24,8 @@ from sb3_mtte.run_info import (
     update_run_info,
     write_run_info,
 )
+from sb3_mtte.experiments.sweep import env_id_for, plan_trials, trial_command
+from sb3_mtte.experiments.variants import label_of as algo_label
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 
@@ -187,23 +189,23 @@ def final_eval(run: Path) -> float:
 
 
 def test_tensorboard_fallback_matches_csv(tmp_path):
-    csv_run = plot.load_run(make_synthetic_run(tmp_path / "a", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False))
-    tb_run = plot.load_run(make_synthetic_run(tmp_path / "b", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False, tb=True))
+    csv_run = plot_runs.load_run(make_synthetic_run(tmp_path / "a", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False))
+    tb_run = plot_runs.load_run(make_synthetic_run(tmp_path / "b", "mtsac_mt", "SAC-MT", 0, 0.5, nt=False, tb=True))
     key = task_log_key("train/critic_loss", 3, "task3-v3")
     assert np.array_equal(csv_run.scalars[key][0], tb_run.scalars[key][0])
     assert np.allclose(csv_run.scalars[key][1], tb_run.scalars[key][1], rtol=1e-6)
 
 
 def test_train_frequency_window():
-    run = plot.Run(Path("."), {"n_tasks": 2, "task_names": ["a", "b"]})
+    run = plot_runs.Run(Path("."), {"n_tasks": 2, "task_names": ["a", "b"]})
     run.nt_records = [{"timesteps": 10 * (j + 1), "selected": [j % 2, 1]} for j in range(6)]
-    steps, freq = plot.train_frequency(run, window_steps=20)  # the last 2 recomputations
+    steps, freq = plot_runs.train_frequency(run, window_steps=20)  # the last 2 recomputations
     assert list(steps) == [10, 20, 30, 40, 50, 60]
     assert np.allclose(freq[:, 0], [0, 0.5, 0.5, 0.5, 0.5, 0.5]) and np.allclose(freq[:, 1], 1)
 
 
 def test_mean_std_over_seeds_interpolates():
-    x, mean, std = plot.mean_std([(np.array([0, 2]), np.array([0.0, 2.0])), (np.array([0, 1, 2]), np.ones(3))])
+    x, mean, std = plot_runs.mean_std([(np.array([0, 2]), np.array([0.0, 2.0])), (np.array([0, 1, 2]), np.ones(3))])
     assert list(x) == [0, 1, 2] and np.allclose(mean, [0.5, 1.0, 1.5]) and np.allclose(std, [0.5, 0.0, 0.5])
 
 
@@ -248,9 +250,9 @@ def test_plot_without_runs(tmp_path):
 
 # ================================================================================================ sweep
 def test_sweep_plan_and_budget(tmp_path):
-    assert sweep.env_id_for("MT10", "smoke") == "MT10-smoke" and sweep.env_id_for("MT10", "full") == "MT10"
+    assert env_id_for("MT10", "smoke") == "MT10-smoke" and env_id_for("MT10", "full") == "MT10"
     (tmp_path / "mtsacte" / "MT10-smoke_1").mkdir(parents=True)
-    trials = sweep.plan_trials(tmp_path, ["mtsacte", "mtsac_mt"], ["MT10"], [0, 1], "smoke", resume=False)
+    trials = plan_trials(tmp_path, ["mtsacte", "mtsac_mt"], ["MT10"], [0, 1], "smoke", resume=False)
     assert [(t["algo"], t["seed"], t["exp_id"]) for t in trials] == [
         ("mtsacte", 0, 2),
         ("mtsacte", 1, 3),
@@ -258,7 +260,7 @@ def test_sweep_plan_and_budget(tmp_path):
         ("mtsac_mt", 1, 1 + 1),
     ]
     assert trials[0]["run_dir"] == str(tmp_path / "mtsacte" / "MT10-smoke_2")
-    argv = sweep.trial_command(trials[0], tmp_path, ["-n", "10"], cpus=2)
+    argv = trial_command(trials[0], tmp_path, ["-n", "10"], cpus=2)
     assert argv[argv.index("--exp-id") + 1] == "2" and argv[-2:] == ["-n", "10"] and "--num-threads" in argv
 
 

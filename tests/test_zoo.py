@@ -19,20 +19,15 @@ from stable_baselines3.common.save_util import load_from_pkl
 from conftest import ENV, TINY, tiny_train
 from sb3_mtte import MTSAC, MTSACTE
 from sb3_mtte.common.utils import check_one_hot, get_task_names
-from sb3_mtte.run_info import ALGO_LABELS, read_run_info
-from sb3_mtte.zoo import (
-    ALGO_KEYS,
-    MultiTaskVecEnvFactory,
-    default_config,
-    find_checkpoints,
-    load_model,
-    main,
-    make_task_env,
-    register_env_id,
-    split_env_id,
-)
+from sb3_mtte.experiments.checkpoints import find_checkpoints, load_model
+from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, make_task_env, register_env_id, split_env_id
+from sb3_mtte.experiments.run_info import read_run_info
+from sb3_mtte.experiments.variants import VARIANTS, algo_classes
+from sb3_mtte.zoo import main
 
-CONFIG_DIR = Path(__file__).resolve().parent.parent / "zoo_configs"
+ALGO_KEYS = algo_classes()
+ALGO_LABELS = {key: variant.label for key, variant in VARIANTS.items()}
 
 
 class RaiseAt(BaseCallback):
@@ -92,9 +87,8 @@ ZOO_KEYS = {"n_timesteps", "policy", "policy_kwargs", "n_envs", "eval_freq", "ev
 @pytest.mark.parametrize("algo", sorted(TABLE1))
 def test_hyperparameter_file(algo):
     """Every row has the paper's settings (Appendix B) and only arguments its class accepts."""
-    path = CONFIG_DIR / f"{algo}.yml"
-    assert default_config(algo) is not None
-    config = yaml.safe_load(path.read_text())
+    config = zoo_hyperparameters(algo)
+    assert config is not None
     assert {"MT10", "MT20", "MT10-smoke", "MT20-smoke", "toy-conflict"} <= set(config)
     cls = ALGO_KEYS[algo]
     accepted = set(inspect.signature(cls.__init__).parameters)
@@ -120,7 +114,7 @@ def test_hyperparameter_file(algo):
 def test_toy_entry_builds_its_model(algo):
     from sb3_mtte.envs import make_mt_env
 
-    entry = dict(yaml.safe_load((CONFIG_DIR / f"{algo}.yml").read_text())["toy-conflict"])
+    entry = dict(zoo_hyperparameters(algo)["toy-conflict"])
     for key in ZOO_KEYS - {"policy", "policy_kwargs"}:
         entry.pop(key, None)
     entry["policy_kwargs"] = eval(entry["policy_kwargs"])

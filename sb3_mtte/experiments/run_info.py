@@ -22,8 +22,14 @@ import socket
 import subprocess
 import sys
 from collections.abc import Mapping
+from importlib.metadata import version as dist_version
 from pathlib import Path
 from typing import Any
+
+import numpy as np
+import torch as th
+
+from sb3_mtte.experiments.variants import label_of
 
 RUN_INFO_FILE = "run_info.json"
 
@@ -39,56 +45,10 @@ VERSION_PACKAGES = (
 )
 """Packages whose versions are recorded."""
 
-ALGO_LABELS: dict[str, str] = {
-    "mtsac_ind": "SAC-Ind",
-    "mtsac_mt": "SAC-MT",
-    "mtsac_mh": "SAC-MT-MH",
-    "mtsac_softmod": "SAC-soft-modular",
-    "mtsac_clip": "SAC-MT-with-clip",
-    "mtsacte": "Ours",
-    "mtsacte_novae": "Ours-VAE",
-    "mtsacte_noclip": "Ours-clip",
-    "mtsacte_nobestbatch": "Ours-bestbatch",
-}
-"""Zoo algorithm key of each Table-1 / Fig.-7 row -> the paper's name for it."""
-
-_POLICY_LABELS = {
-    "MlpPolicy": "SAC-MT",
-    "MultiHeadPolicy": "SAC-MT-MH",
-    "SoftModularPolicy": "SAC-soft-modular",
-    "IndependentPolicy": "SAC-Ind",
-}
-
 
 def now() -> str:
     """The current UTC time, ISO 8601."""
     return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
-
-
-def algo_label(algo: str, hyperparams: Mapping[str, Any] | None = None) -> str:
-    """The paper's name of a run from its zoo key, or from its hyperparameters for the generic keys.
-
-    :param algo: zoo algorithm key (``"mtsacte"``, ``"mtsac_mh"``, ``"mtsac"``, ...).
-    :param hyperparams: the run's hyperparameters (used for ``"mtsac"`` and unknown keys).
-    """
-    if algo in ALGO_LABELS:
-        return ALGO_LABELS[algo]
-    params = dict(hyperparams or {})
-    if algo.startswith("mtsacte"):
-        if params.get("use_vae") is False:
-            return "Ours-VAE"
-        if "q_loss_clip" in params and params["q_loss_clip"] is None:
-            return "Ours-clip"
-        if params.get("use_topk") is False:
-            return "Ours-bestbatch"
-        return "Ours"
-    if algo.startswith("mtsac"):
-        policy = str(params.get("policy", "MlpPolicy")).split(".")[-1]
-        label = _POLICY_LABELS.get(policy, policy)
-        if label == "SAC-MT" and params.get("q_loss_clip") is not None:
-            return "SAC-MT-with-clip"
-        return label
-    return algo
 
 
 def package_versions() -> dict[str, str | None]:
@@ -103,8 +63,6 @@ def package_versions() -> dict[str, str | None]:
         version = getattr(module, "__version__", None)
         if version is None:
             try:
-                from importlib.metadata import version as dist_version
-
                 version = dist_version(name.replace("_", "-"))
             except Exception:  # noqa: BLE001
                 version = None
@@ -118,7 +76,7 @@ def git_info(path: str | os.PathLike | None = None) -> dict[str, Any]:
     :return: ``{"commit": ..., "branch": ..., "dirty": ...}``; values are None outside a git work tree.
     """
     if path is None:
-        path = Path(__file__).resolve().parent
+        path = Path(__file__).resolve().parents[1]
     path = os.fspath(path)
 
     def git(*args: str) -> str | None:
@@ -138,10 +96,6 @@ def git_info(path: str | os.PathLike | None = None) -> dict[str, Any]:
 def device_info() -> dict[str, Any]:
     """CPU count, torch threads and the CUDA device, if any."""
     info: dict[str, Any] = {"cpu_count": os.cpu_count()}
-    try:
-        import torch as th
-    except ImportError:  # pragma: no cover
-        return info
     info["torch_threads"] = th.get_num_threads()
     info["cuda"] = th.cuda.is_available()
     if info["cuda"]:
@@ -157,15 +111,10 @@ def to_jsonable(value: Any) -> Any:
         return {str(key): to_jsonable(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
         return [to_jsonable(item) for item in value]
-    try:
-        import numpy as np
-
-        if isinstance(value, np.generic):
-            return value.item()
-        if isinstance(value, np.ndarray):
-            return value.tolist()
-    except ImportError:  # pragma: no cover
-        pass
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
     if isinstance(value, type):
         return f"{value.__module__}.{value.__qualname__}"
     return repr(value)
@@ -193,7 +142,7 @@ def collect_run_info(
     """
     info: dict[str, Any] = {
         "algo": algo,
-        "label": algo_label(algo, hyperparams),
+        "label": label_of(algo, hyperparams),
         "env_id": env_id,
         "benchmark": benchmark or env_id,
         "seed": int(seed),
@@ -249,9 +198,7 @@ def append_resume(run_dir: str | os.PathLike, **entry: Any) -> dict[str, Any]:
 
 
 __all__ = [
-    "ALGO_LABELS",
     "RUN_INFO_FILE",
-    "algo_label",
     "append_resume",
     "collect_run_info",
     "device_info",

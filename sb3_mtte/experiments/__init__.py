@@ -1,0 +1,17 @@
+"""Experiment tooling: the rl-zoo3 launcher, evaluation, figures, sweeps and run metadata, one concern a module.
+
+- :mod:`~sb3_mtte.experiments.variants`: the algorithm variants (zoo keys, classes, labels, order, paper numbers);
+- :mod:`~sb3_mtte.experiments.configs`: a zoo key's hyperparameters (family file + variant overrides);
+- :mod:`~sb3_mtte.experiments.env_ids`: benchmark env ids and the one-task-per-sub-env VecEnv;
+- :mod:`~sb3_mtte.experiments.manager`: rl-zoo3's ``ExperimentManager`` for multi-task runs;
+- :mod:`~sb3_mtte.experiments.launcher`: ``train`` (rl-zoo's, with resume);
+- :mod:`~sb3_mtte.experiments.playback`: ``enjoy`` and ``record_video``;
+- :mod:`~sb3_mtte.experiments.checkpoints`, :mod:`~sb3_mtte.experiments.callbacks`,
+  :mod:`~sb3_mtte.experiments.run_logs`: resumable checkpoints, training callbacks, the logs of a run folder;
+- :mod:`~sb3_mtte.experiments.run_info`: ``run_info.json``;
+- :mod:`~sb3_mtte.experiments.evaluate`: the official per-task evaluation of a saved model;
+- :mod:`~sb3_mtte.experiments.runs`, :mod:`~sb3_mtte.experiments.figures`, :mod:`~sb3_mtte.experiments.results`,
+  :mod:`~sb3_mtte.experiments.plot`: reading runs, the figures, Table 1 and results, the ``plot`` command;
+- :mod:`~sb3_mtte.experiments.sweep`: a grid of runs on Ray Tune;
+- :mod:`~sb3_mtte.experiments.cli`: the ``sb3-mtte`` command.
+"""

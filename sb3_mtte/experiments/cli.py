@@ -1,0 +1,77 @@
+"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|plot|sweep`` (and ``python -m sb3_mtte.zoo``).
+
+Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
+
+    sb3-mtte train --algo mtsacte --env MT10 [-conf my.yml] [rl-zoo flags]
+    sb3-mtte train --algo mtsacte --env MT10 --resume      # latest run of mtsacte/MT10 in -f
+    sb3-mtte train --resume logs/mtsacte/MT10_1            # a given run folder
+    sb3-mtte enjoy --algo mtsacte --env MT10 -f logs --no-render -n 2000
+    sb3-mtte record_video --algo mtsacte --env MT10 -f logs [-o VIDEO_DIR] [--episodes 1] [--tile]
+    sb3-mtte evaluate logs/mtsacte/MT10_1/MT10.zip --episodes 50
+    sb3-mtte plot logs --out figures/
+    sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
+
+``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``
+and ``python -m sb3_mtte.sweep`` are the same commands.
+
+What ``train`` adds to rl-zoo3: the zoo keys of :mod:`~sb3_mtte.experiments.variants` in ``rl_zoo3.ALGOS`` with
+their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
+(:mod:`~sb3_mtte.experiments.env_ids`); Meta-World's success protocol for evaluation (``--eval-freq`` in total env
+steps, ``--eval-episodes`` per task, ``evaluations.npz`` and ``best_model.zip``); a run folder with
+``progress.csv``, tensorboard events, ``negative_transfer.jsonl`` (MTSACTE) and ``run_info.json``
+(:mod:`~sb3_mtte.experiments.run_info`); checkpoints (``--save-freq``) that ``--resume`` continues exactly
+(:mod:`~sb3_mtte.experiments.checkpoints`). ``enjoy`` prints every finished episode; ``record_video`` writes one
+video per task (``--tile``: also all tasks side by side).
+"""
+
+from __future__ import annotations
+
+import sys
+import warnings
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from sb3_mtte.experiments import evaluate, plot, sweep
+from sb3_mtte.experiments.env_ids import register_standard_env_ids
+from sb3_mtte.experiments.launcher import train
+from sb3_mtte.experiments.playback import enjoy, record_video
+
+ZOO_COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
+    "train": train,
+    "enjoy": enjoy,
+    "record_video": record_video,
+}
+"""The rl-zoo commands (``python -m sb3_mtte.zoo``)."""
+
+COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
+    **ZOO_COMMANDS,
+    "evaluate": evaluate.main,
+    "plot": plot.main,
+    "sweep": sweep.main,
+}
+"""Every command of ``sb3-mtte``."""
+
+
+def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: Sequence[str] | None) -> Any:
+    """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None)."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] not in commands:
+        print(f"usage: {prog} {{{','.join(commands)}}} [options]\n\n{__doc__}")
+        raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
+    register_standard_env_ids()
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*render_mode.*")
+        return commands[argv[0]](argv[1:])
+
+
+def main(argv: Sequence[str] | None = None) -> Any:
+    """``sb3-mtte {train,enjoy,record_video,evaluate,plot,sweep} ...`` (the console script)."""
+    return run_command(COMMANDS, "sb3-mtte", argv)
+
+
+def zoo_main(argv: Sequence[str] | None = None) -> Any:
+    """``python -m sb3_mtte.zoo {train,enjoy,record_video} ...``"""
+    return run_command(ZOO_COMMANDS, "python -m sb3_mtte.zoo", argv)
+
+
+__all__ = ["COMMANDS", "ZOO_COMMANDS", "main", "zoo_main"]

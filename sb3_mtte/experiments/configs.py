@@ -1,0 +1,54 @@
+"""Hyperparameters of a zoo key: its family's file ``zoo_configs/<family>.yml`` plus the variant's overrides.
+
+The family files are rl-zoo3 hyperparameter files (one entry per env id: ``MT10``, ``MT10-smoke``, ...) written
+once per algorithm family; a variant's entries are the family's with the variant's policy and overrides
+(:meth:`~sb3_mtte.experiments.variants.Variant.compose`). A file given with ``-conf`` is read by rl-zoo as usual.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from sb3_mtte.experiments.variants import FAMILIES, VARIANTS
+
+CONFIG_DIR_NAME = "zoo_configs"
+
+
+def find_config_dir() -> Path | None:
+    """``zoo_configs/`` of the current directory, else of the source checkout holding this package."""
+    for base in (Path.cwd(), Path(__file__).resolve().parents[2]):
+        if (base / CONFIG_DIR_NAME).is_dir():
+            return base / CONFIG_DIR_NAME
+    return None
+
+
+def family_config_path(algo: str) -> Path | None:
+    """The family file of a zoo key (``zoo_configs/mtsac.yml`` for ``mtsac_mh``), or None when not found."""
+    family = VARIANTS[algo].family if algo in VARIANTS else algo
+    directory = find_config_dir()
+    if family not in FAMILIES or directory is None:
+        return None
+    path = directory / f"{family}.yml"
+    return path if path.is_file() else None
+
+
+def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
+    """Every env entry of a zoo key's hyperparameters (rl-zoo's file layout), or None for a key of no family.
+
+    :raises FileNotFoundError: when the family's file is missing.
+    """
+    if algo not in VARIANTS and algo not in FAMILIES:
+        return None
+    path = family_config_path(algo)
+    if path is None:
+        raise FileNotFoundError(f"No {CONFIG_DIR_NAME}/ file for {algo!r} found: pass -conf <file>.yml.")
+    base = yaml.safe_load(path.read_text())
+    if algo in FAMILIES:
+        return base
+    return {env_key: VARIANTS[algo].compose(env_key, entry) for env_key, entry in base.items()}
+
+
+__all__ = ["CONFIG_DIR_NAME", "family_config_path", "find_config_dir", "zoo_hyperparameters"]

@@ -1,0 +1,164 @@
+"""Env ids of the benchmarks and the VecEnv "class" that makes sub-env i run task i.
+
+Env ids ``MT10``, ``MT20``, ``MT50``, ``toy-conflict``, ``toy-agree`` (and ``toy-conflict-<N>``), each also with a
+budget suffix (``MT10-smoke``): the suffix picks another entry of the hyperparameter file and names the run folder,
+the benchmark is the same. rl-zoo builds every sub-env with the same constructor; :class:`MultiTaskVecEnvFactory`
+(the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's ``--vec-env`` choice inside) tells
+constructor i which task to build.
+"""
+
+from __future__ import annotations
+
+import contextvars
+from collections.abc import Callable, Sequence
+from typing import Any
+
+import gymnasium as gym
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+from sb3_mtte.envs import METAWORLD_BENCHMARKS, TOY_BENCHMARKS, make_env_fns
+from sb3_mtte.envs.toy import parse_toy_name
+from sb3_mtte.experiments.callbacks import EpisodeReporter
+
+BUDGET_SUFFIXES = ("smoke", "cpu")
+"""Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
+
+STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "toy-conflict", "toy-agree")
+
+
+def split_env_id(env_id: str) -> tuple[str, str | None]:
+    """``"MT10-smoke"`` -> ``("MT10", "smoke")``; ``"MT10"`` -> ``("MT10", None)``."""
+    for suffix in BUDGET_SUFFIXES:
+        if env_id.endswith(f"-{suffix}"):
+            return env_id[: -len(suffix) - 1], suffix
+    return env_id, None
+
+
+def benchmark_task_names(benchmark: str) -> list[str]:
+    """Task names of a benchmark name (``"MT10"``, ``"toy-conflict-6"``, ...), without building any env.
+
+    :raises ValueError: for an unknown benchmark.
+    """
+
+    toy = parse_toy_name(benchmark)
+    if toy is not None:
+        return TOY_BENCHMARKS[toy[0]](toy[1])[0]
+    if benchmark.upper() in METAWORLD_BENCHMARKS:
+        return list(METAWORLD_BENCHMARKS[benchmark.upper()])
+    raise ValueError(
+        f"Unknown benchmark {benchmark!r}: use MT10, MT20, MT50, toy-conflict, toy-agree or toy-<name>-<N>, "
+        f"optionally followed by a budget suffix ({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
+    )
+
+
+def env_id_n_tasks(env_id: str) -> int:
+    """Number of tasks of the benchmark an env id names."""
+    return len(benchmark_task_names(split_env_id(env_id)[0]))
+
+
+def benchmark_help() -> str:
+    """The env ids the launcher accepts, in words."""
+    return (
+        "MT10, MT20, MT50, toy-conflict, toy-agree or toy-<conflict|agree>-<N>, optionally with a budget suffix "
+        f"({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
+    )
+
+
+_ENTRY_POINT = "sb3_mtte.experiments.env_ids:make_task_env"
+_TASK_CONTEXT: contextvars.ContextVar[tuple[int, int] | None] = contextvars.ContextVar("sb3_mtte_task", default=None)
+
+
+def make_task_env(benchmark: str, task_index: int | None = None, seed: int | None = None, **kwargs: Any) -> gym.Env:
+    """Gymnasium entry point of the registered ids: sub-env ``task_index`` of ``benchmark``.
+
+    Inside :class:`MultiTaskVecEnvFactory` the task index and the benchmark seed come from the sub-env's position;
+    elsewhere pass ``task_index`` (and ``seed``) explicitly.
+
+    :param benchmark: benchmark name.
+    :param task_index: the task this env runs.
+    :param seed: benchmark seed (goal variations); default: the factory's seed, else 0.
+    :param kwargs: env keyword arguments of :func:`sb3_mtte.envs.make_mt_env` (``max_episode_steps``,
+        ``render_mode``, ...).
+    """
+
+    context = _TASK_CONTEXT.get()
+    if task_index is None:
+        if context is None:
+            raise gym.error.Error(
+                f"{benchmark!r} is a multi-task benchmark with one sub-env per task: build it with "
+                "sb3_mtte.envs.make_mt_env, with the sb3_mtte.zoo launcher, or pass task_index=i."
+            )
+        task_index = context[0]
+    if seed is None:
+        seed = context[1] if context is not None else 0
+    env_fns = make_env_fns(benchmark, seed=int(seed), **kwargs)
+    return env_fns[task_index]()
+
+
+def register_env_id(env_id: str) -> bool:
+    """Register ``env_id`` (a benchmark name, optionally with a budget suffix) with gymnasium.
+
+    :return: True when registered now or before, False when ``env_id`` is no benchmark of this package.
+    """
+    if env_id in gym.envs.registry:
+        return gym.envs.registry[env_id].entry_point == _ENTRY_POINT
+    benchmark = split_env_id(env_id)[0]
+    try:
+        benchmark_task_names(benchmark)
+    except ValueError:
+        return False
+    gym.register(
+        id=env_id,
+        entry_point=_ENTRY_POINT,
+        kwargs={"benchmark": benchmark},
+        disable_env_checker=True,
+    )
+    return True
+
+
+def register_standard_env_ids() -> None:
+    """Register :data:`STANDARD_BENCHMARKS`, each with and without every budget suffix."""
+    for benchmark in STANDARD_BENCHMARKS:
+        register_env_id(benchmark)
+        for suffix in BUDGET_SUFFIXES:
+            register_env_id(f"{benchmark}-{suffix}")
+
+
+class _TaskEnvFn:
+    """Picklable constructor that builds sub-env ``task_index`` by calling a zoo env constructor in context."""
+
+    def __init__(self, env_fn: Callable[[], gym.Env], task_index: int, seed: int) -> None:
+        self.env_fn, self.task_index, self.seed = env_fn, task_index, seed
+
+    def __call__(self) -> gym.Env:
+        token = _TASK_CONTEXT.set((self.task_index, self.seed))
+        try:
+            return self.env_fn()
+        finally:
+            _TASK_CONTEXT.reset(token)
+
+
+class MultiTaskVecEnvFactory:
+    """A VecEnv "class" for rl-zoo: given N constructors of the same registered env, sub-env i builds task i.
+
+    :param n_tasks: number of tasks N; the zoo must ask for N sub-envs.
+    :param seed: benchmark seed handed to every sub-env (goal variations).
+    :param vec_env_cls: the VecEnv class that runs the sub-envs (rl-zoo's ``--vec-env`` choice).
+    :param report_episodes: wrap the env in :class:`EpisodeReporter` (``enjoy``).
+    """
+
+    def __init__(
+        self, n_tasks: int, seed: int = 0, vec_env_cls: type[VecEnv] = DummyVecEnv, report_episodes: bool = False
+    ) -> None:
+        self.n_tasks, self.seed, self.vec_env_cls = n_tasks, int(seed), vec_env_cls
+        self.report_episodes = report_episodes
+
+    def __call__(self, env_fns: Sequence[Callable[[], gym.Env]], **vec_env_kwargs: Any) -> VecEnv:
+        if len(env_fns) != self.n_tasks:
+            raise ValueError(
+                f"This benchmark has {self.n_tasks} tasks and needs one sub-env per task; got {len(env_fns)} "
+                f"sub-envs (use n_envs={self.n_tasks}, or --n-envs {self.n_tasks} for enjoy)."
+            )
+        fns = [_TaskEnvFn(fn, i, self.seed) for i, fn in enumerate(env_fns)]
+        env = self.vec_env_cls(fns, **vec_env_kwargs)  # type: ignore[arg-type]
+        return EpisodeReporter(env) if self.report_episodes else env

@@ -1,0 +1,139 @@
+"""Per-task success of a trained model with Meta-World's official protocol.
+
+Usage::
+
+    sb3-mtte evaluate MODEL.zip [--env MT10] [--episodes 50] [--seed S] [--device cpu] [--out PATH]
+
+MODEL is a checkpoint of MTSAC or MTSACTE (the class is read from the zip). Each task runs ``--episodes``
+episodes, one per goal variation in order, with deterministic actions (:func:`sb3_mtte.evaluate_success`).
+The env and the benchmark seed default to those of the run folder holding the model (its ``run_info.json``),
+else seed 0; an env id with a budget suffix (``MT10-smoke``) names its benchmark (``MT10``).
+
+The per-task table is printed and written as JSON beside the model: ``success.json`` for the run's final
+model, ``success_<model name>.json`` for any other file (checkpoints, ``best_model.zip``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from stable_baselines3.common.base_class import BaseAlgorithm
+
+from sb3_mtte.common.checkpoints import read_checkpoint_data
+from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
+from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.checkpoints import load_model
+from sb3_mtte.experiments.env_ids import split_env_id
+
+
+def default_output_path(model_path: str | os.PathLike, info: dict[str, Any] | None) -> Path:
+    """``success.json`` beside the run's final model, ``success_<stem>.json`` beside any other model file."""
+    model_path = Path(model_path)
+    final = (info or {}).get("final_model") or (f"{info['env_id']}.zip" if info and "env_id" in info else None)
+    if final is not None and model_path.name == final:
+        return model_path.with_name("success.json")
+    return model_path.with_name(f"success_{model_path.stem}.json")
+
+
+def format_table(result: SuccessResult, title: str | None = None) -> str:
+    """The per-task success rates as a markdown table, with their mean."""
+    width = max([len("task"), *(len(name) for name in result.task_names)])
+    lines = [] if title is None else [title, ""]
+    lines.append(f"| {'#':>2} | {'task':<{width}} | success |")
+    lines.append(f"|---:|:{'-' * (width + 1)}|--------:|")
+    for i, (name, rate) in enumerate(zip(result.task_names, result.success_rate)):
+        lines.append(f"| {i:>2} | {name:<{width}} | {100 * rate:6.1f}% |")
+    lines.append(f"|    | {'mean':<{width}} | {100 * result.mean:6.1f}% |")
+    return "\n".join(lines)
+
+
+def evaluate_model(
+    model_path: str | os.PathLike,
+    env: str | None = None,
+    episodes: int = 50,
+    seed: int | None = None,
+    device: str = "auto",
+    out: str | os.PathLike | None = None,
+    stochastic: bool = False,
+) -> dict[str, Any]:
+    """Evaluate a saved model, print the table, write the JSON and return its content.
+
+    :param model_path: the model zip (MTSAC or MTSACTE).
+    :param env: benchmark or env id; default: the run's (``run_info.json`` beside the model).
+    :param episodes: episodes per task.
+    :param seed: benchmark seed; default: the run's benchmark seed, else 0.
+    :param device: torch device.
+    :param out: JSON path (default: :func:`default_output_path`).
+    :param stochastic: sample actions instead of the deterministic ones.
+    """
+    model_path = Path(model_path)
+    info = run_info.read_run_info(model_path.parent)
+    env_id = env or (info or {}).get("env_id")
+    if env_id is None:
+        raise ValueError(f"No run_info.json beside {model_path}: pass --env.")
+    benchmark = split_env_id(env_id)[0]
+    if seed is None:
+        seed = int((info or {}).get("benchmark_seed", 0))
+    model = _load_model_of_run(model_path, info, device)
+    data = read_checkpoint_data(model_path)
+    start = time.time()
+    result = evaluate_success(model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed)
+    record = {
+        **result.as_dict(),
+        "success_rate": [float(r) for r in result.success_rate],
+        "task_names": list(result.task_names),
+        "model": str(model_path),
+        "algorithm": data.get("algorithm_name"),
+        "algo": (info or {}).get("algo"),
+        "label": (info or {}).get("label"),
+        "env_id": env_id,
+        "benchmark": benchmark,
+        "seed": seed,
+        "run_seed": (info or {}).get("seed"),
+        "episodes_per_task": episodes,
+        "deterministic": not stochastic,
+        "timesteps": int(data.get("num_timesteps", 0)),
+        "evaluation_seconds": round(time.time() - start, 2),
+        "time": run_info.now(),
+    }
+    out_path = Path(out) if out is not None else default_output_path(model_path, info)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(record, indent=2) + "\n")
+    title = (
+        f"{record['label'] or record['algorithm']} on {benchmark} (seed {seed}), {record['timesteps']} steps, "
+        f"{episodes} episodes per task"
+    )
+    print(format_table(result, title))
+    print(f"\nWritten to {out_path}")
+    return record
+
+
+def _load_model_of_run(model_path: Path, info: dict[str, Any] | None, device: str) -> BaseAlgorithm:
+    """Load a model zip, checking its task count against its run's."""
+    if not model_path.is_file():
+        raise FileNotFoundError(f"No model at {model_path}.")
+    model = load_model(model_path, device=device)
+    if model.n_tasks and info and info.get("n_tasks") not in (None, model.n_tasks):
+        raise ValueError(f"{model_path} has {model.n_tasks} tasks, its run {info['n_tasks']}.")
+    return model
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """``sb3-mtte evaluate MODEL [--env ENV] [--episodes 50] [--seed S] [--device D] [--out PATH]``"""
+    parser = argparse.ArgumentParser(prog="sb3-mtte evaluate", description=__doc__.split("\n\n")[0])
+    parser.add_argument("model", help="model zip (MTSAC or MTSACTE)")
+    parser.add_argument("--env", default=None, help="benchmark or env id (default: the run's)")
+    parser.add_argument("--episodes", type=int, default=50, help="episodes per task (default 50)")
+    parser.add_argument("--seed", type=int, default=None, help="benchmark seed (default: the run's, else 0)")
+    parser.add_argument("--device", default="auto", help="torch device (default auto)")
+    parser.add_argument("--out", default=None, help="JSON path (default: success.json beside the model)")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions")
+    args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    return evaluate_model(args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic)

@@ -1,0 +1,362 @@
+"""The paper's figures from runs grouped by benchmark and algorithm (``<b>`` = benchmark, ``<a>`` = algorithm label).
+
+- ``success_<b>.png`` (Fig. 4; ``ablation_<b>.png``: Fig. 7): mean success over tasks, mean +- std over seeds;
+- ``per_task_<b>.png`` (Figs. 8-9): success of every task, mean +- std over seeds;
+- ``bellman_<b>_<a>.png`` (Fig. 3): per task, soft Bellman error (critic loss) and success;
+- ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm;
+- ``train_frequency_<b>_<a>.png`` (Fig. 5): per task, the fraction of recomputations in which it was in C_s
+  over a sliding window, and its success;
+- ``nt_<b>_<a>.png``: mu, the task weights w and the task information in z (linear-probe accuracy) over time;
+- ``nt_matrix_<b>_<a>.png``: the N x N matrix [k, i] = J_i(theta^k) - J_i(theta) at chosen times.
+"""
+
+from __future__ import annotations
+
+import math
+import textwrap
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.colors import TwoSlopeNorm
+from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+from sb3_mtte.common.utils import short_task_name
+from sb3_mtte.experiments.runs import (
+    Run,
+    Series,
+    episode_length,
+    label_order,
+    mean_std,
+    nt_arrays,
+    nt_series,
+    smooth,
+    success_curve,
+    task_scalar,
+    train_frequency,
+)
+from sb3_mtte.experiments.variants import ablation_labels
+
+Groups = dict[str, list[Run]]
+"""Algorithm label -> runs (its seeds), for one benchmark."""
+
+
+@dataclass
+class PlotOptions:
+    """Options of the figures.
+
+    :param out: output folder.
+    :param x_per_task: time axis in env steps per task (else over all tasks).
+    :param smooth: moving-average window in points (1: none).
+    :param tasks: tasks of Figs. 3 and 5 (full or short names; None: all).
+    :param matrix_times: times of the transfer-matrix heatmaps (x units; None: first, middle, last).
+    :param freq_window_episodes: window of the train frequency, in episodes.
+    :param dpi: resolution of the PNG files.
+    :param results_dir: folder of the per-benchmark results JSON (None: ``out``).
+    """
+
+    out: Path
+    x_per_task: bool = True
+    smooth: int = 1
+    tasks: list[str] | None = None
+    matrix_times: list[float] | None = None
+    freq_window_episodes: int = 20
+    dpi: int = 120
+    results_dir: Path | None = None
+
+    def xscale(self, run: Run) -> float:
+        return 1.0 / run.n_tasks if self.x_per_task else 1.0
+
+    @property
+    def xlabel(self) -> str:
+        return "environment steps per task" if self.x_per_task else "environment steps (all tasks)"
+
+
+def safe_name(name: str) -> str:
+    """``name`` with only letters, digits and ``-_.`` (file names)."""
+    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
+
+
+def _figure(width: float, height: float) -> Figure:
+    return Figure(figsize=(width, height), layout="constrained")
+
+
+def _title(fig: Figure, text: str, fontsize: float = 10) -> None:
+    """A figure title wrapped to the figure's width."""
+    chars = max(40, int(fig.get_figwidth() * 120 / fontsize))
+    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
+
+
+def _steps_label(x: float, _position: int | None = None) -> str:
+    """Tick label of an env-step count: ``20k``, ``1.5M``."""
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(x) >= scale:
+            return f"{x / scale:g}{suffix}"
+    return f"{x:g}"
+
+
+def _save(fig: Figure, path: Path, opts: PlotOptions, written: list[Path]) -> None:
+    for ax in fig.axes:
+        if not ax.images and getattr(ax, "_colorbar", None) is None:  # time axes, not the heatmaps or colorbars
+            ax.xaxis.set_major_locator(MaxNLocator(5))
+            ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
+    fig.savefig(path, dpi=opts.dpi)
+    written.append(path)
+
+
+def _band(ax: Axes, x: np.ndarray, mean: np.ndarray, std: np.ndarray, label: str) -> None:
+    (line,) = ax.plot(x, mean, label=label)
+    if np.any(std > 0):
+        ax.fill_between(x, mean - std, mean + std, alpha=0.2, color=line.get_color())
+
+
+def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[int]:
+    """Indices of the tasks named in ``wanted`` (full or short names, e.g. ``pick-place``); all when None."""
+    if not wanted:
+        return list(range(len(names)))
+    chosen = []
+    for want in wanted:
+        for i, name in enumerate(names):
+            if want in (name, short_task_name(name)) and i not in chosen:
+                chosen.append(i)
+    return chosen or list(range(len(names)))
+
+
+def _panels(n: int, max_cols: int, width: float, height: float) -> tuple[Figure, list[Axes]]:
+    """A figure with ``n`` panels in a grid of at most ``max_cols`` columns (unused cells hidden)."""
+    cols = min(n, max_cols)
+    rows = math.ceil(n / cols)
+    fig = _figure(width * cols, height * rows + 0.6)
+    grid = fig.subplots(rows, cols, squeeze=False)
+    axes = [grid[j // cols][j % cols] for j in range(rows * cols)]
+    for ax in axes[n:]:
+        ax.axis("off")
+    return fig, axes[:n]
+
+
+def _mean_series(
+    runs: Sequence[Run], get: Callable[[Run], Series | None], opts: PlotOptions, smoothed: bool = True
+) -> Series | None:
+    """Mean over runs (seeds) of a series of each run, in x units (and smoothed over ``opts.smooth`` points)."""
+    curves = []
+    for run in runs:
+        series = get(run)
+        if series is not None and len(series[0]):
+            values = smooth(series[1], opts.smooth) if smoothed else series[1]
+            curves.append((series[0] * opts.xscale(run), values))
+    if not curves:
+        return None
+    x, mean, _ = mean_std(curves)
+    return x, mean
+
+
+def _success_band(ax: Axes, runs: Sequence[Run], label: str, opts: PlotOptions, task: int | None = None) -> int:
+    """Success (%) of ``runs``, mean +- std over seeds; returns the number of runs drawn."""
+    curves = []
+    for run in runs:
+        curve = success_curve(run, task) if task is None or task < run.n_tasks else None
+        if curve is not None:
+            curves.append((curve[0] * opts.xscale(run), smooth(curve[1], opts.smooth)))
+    if curves:
+        x, mean, std = mean_std(curves)
+        _band(ax, x, 100 * mean, 100 * std, label=label)
+    return len(curves)
+
+
+def plot_success(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
+    """Fig. 4 (and Fig. 7 when ablation runs are present): mean success, mean +- std over seeds."""
+    ablations = ablation_labels()
+    sets = [("success", [label for label in label_order(list(groups)) if label not in ablations[1:]])]
+    if any(label in groups for label in ablations[1:]):
+        sets.append(("ablation", [label for label in ablations if label in groups]))
+    for name, labels in sets:
+        fig = _figure(7, 4.5)
+        ax = fig.subplots()
+        for label in labels:
+            n_runs = len([run for run in groups[label] if success_curve(run) is not None])
+            _success_band(ax, groups[label], f"{label} (n={n_runs})", opts)
+        ax.set_xlabel(opts.xlabel)
+        ax.set_ylabel("success rate (%)")
+        ax.set_ylim(-2, 102)
+        ax.set_title(f"{bench}: mean success over tasks" + (" (ablations)" if name == "ablation" else ""))
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8)
+        _save(fig, opts.out / f"{name}_{safe_name(bench)}.png", opts, written)
+
+
+def plot_per_task(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
+    """Figs. 8-9: success of every task, one panel per task, mean +- std over seeds per algorithm."""
+    names = next(iter(groups.values()))[0].task_names
+    fig, axes = _panels(len(names), 5, 3.2, 2.6)
+    for i, (ax, name) in enumerate(zip(axes, names)):
+        for label in label_order(list(groups)):
+            _success_band(ax, groups[label], label, opts, task=i)
+        ax.set_title(short_task_name(name), fontsize=9)
+        ax.set_ylim(-2, 102)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=8)
+    _title(fig, f"{bench}: success rate (%) per task vs {opts.xlabel}")
+    _save(fig, opts.out / f"per_task_{safe_name(bench)}.png", opts, written)
+
+
+def _twin_panel(ax: Axes, success: Series | None, other: Series | None, other_label: str) -> Axes:
+    """Success (left axis, blue) and another quantity (right axis, orange) on one panel."""
+    if success is not None and len(success[0]):
+        ax.plot(success[0], 100 * success[1], color="tab:blue", label="success")
+    ax.set_ylim(-2, 102)
+    ax.tick_params(axis="y", labelcolor="tab:blue", labelsize=7)
+    ax.tick_params(axis="x", labelsize=7)
+    twin = ax.twinx()
+    if other is not None and len(other[0]):
+        twin.plot(other[0], other[1], color="tab:orange", label=other_label)
+    twin.tick_params(axis="y", labelcolor="tab:orange", labelsize=7)
+    return twin
+
+
+def _mean_critic_loss(run: Run) -> Series | None:
+    series = [task_scalar(run, "train/critic_loss", i) for i in range(run.n_tasks)]
+    series = [s for s in series if s is not None]
+    return mean_std(series)[:2] if series else None
+
+
+def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
+    """Fig. 3 (per task, per algorithm) and Fig. 6 (task average, one row per algorithm)."""
+    with_loss = {
+        label: runs
+        for label, runs in groups.items()
+        if any(task_scalar(r, "train/critic_loss", 0) is not None for r in runs)
+    }
+    for label in label_order(list(with_loss)):
+        runs = with_loss[label]
+        names = runs[0].task_names
+        fig, axes = _panels(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
+        for ax, i in zip(axes, _selected_tasks(names, opts.tasks)):
+            success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
+            loss = _mean_series(runs, lambda r, i=i: task_scalar(r, "train/critic_loss", i), opts)
+            _twin_panel(ax, success, loss, "soft Bellman error")
+            ax.set_title(short_task_name(names[i]), fontsize=9)
+        _title(fig, f"{bench}, {label}: success rate % (blue) and soft Bellman error J^Q (orange) vs {opts.xlabel}")
+        _save(fig, opts.out / f"bellman_{safe_name(bench)}_{safe_name(label)}.png", opts, written)
+    if not with_loss:
+        return
+    labels = label_order(list(with_loss))
+    fig = _figure(7, 2.8 * len(labels) + 0.6)
+    axes = fig.subplots(len(labels), 1, squeeze=False)[:, 0]
+    for ax, label in zip(axes, labels):
+        success = _mean_series(with_loss[label], success_curve, opts)
+        twin = _twin_panel(ax, success, _mean_series(with_loss[label], _mean_critic_loss, opts), "soft Bellman error")
+        ax.set_ylabel("success rate (%)", color="tab:blue", fontsize=8)
+        twin.set_ylabel("soft Bellman error", color="tab:orange", fontsize=8)
+        ax.set_title(f"{label}: average over tasks", fontsize=9)
+    axes[-1].set_xlabel(opts.xlabel)
+    _title(fig, f"{bench}: success rate % (blue) and average soft Bellman error (orange)")
+    _save(fig, opts.out / f"bellman_avg_{safe_name(bench)}.png", opts, written)
+
+
+def plot_negative_transfer(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
+    """Fig. 5 (train frequency vs success), mu and weights over time, and the transfer-matrix heatmaps."""
+    for label in label_order(list(groups)):
+        runs = [r for r in groups[label] if r.nt_records]
+        if not runs:
+            continue
+        name = f"{safe_name(bench)}_{safe_name(label)}.png"
+        title = f"{bench}, {label}"
+        _save(_train_frequency_figure(title, runs, opts), opts.out / f"train_frequency_{name}", opts, written)
+        _save(_nt_over_time_figure(title, runs, opts), opts.out / f"nt_{name}", opts, written)
+        _save(_transfer_matrix_figure(title, runs, opts), opts.out / f"nt_matrix_{name}", opts, written)
+
+
+def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
+    """Fig. 5: per task, success and the share of recomputations in which the task was in C_s."""
+    names = runs[0].task_names
+    tasks = _selected_tasks(names, opts.tasks)
+    fig, axes = _panels(len(tasks), 4, 3.6, 2.8)
+    for ax, i in zip(axes, tasks):
+
+        def frequency(run: Run, i: int = i) -> Series:
+            window = opts.freq_window_episodes * episode_length(run) * run.n_tasks
+            steps, freq = train_frequency(run, window)
+            return steps, freq[:, i]
+
+        success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
+        twin = _twin_panel(ax, success, _mean_series(runs, frequency, opts, smoothed=False), "train frequency")
+        twin.set_ylim(-0.02, 1.02)
+        ax.set_title(short_task_name(names[i]), fontsize=9)
+    _title(
+        fig,
+        f"{title}: success rate % (blue) and train frequency (orange, share of recomputations in C_s over "
+        f"{opts.freq_window_episodes} episodes) vs {opts.xlabel}",
+    )
+    return fig
+
+
+def _nt_over_time_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
+    """mu and w per task, and the task information in z (linear probe), over time."""
+    names, n = runs[0].task_names, runs[0].n_tasks
+    fig = _figure(9, 8)
+    axes = fig.subplots(3, 1, sharex=True)
+    for key, ax, ylabel in (("mu", axes[0], "mu (negative-transfer count, Eq. 6)"), ("weights", axes[1], "w (Eq. 8)")):
+        for i in range(n):
+            series = _mean_series(runs, lambda r, i=i, key=key: nt_series(r, key, i), opts)
+            if series is not None:
+                ax.plot(series[0], series[1], label=short_task_name(names[i]), lw=1)
+        ax.set_ylabel(ylabel)
+        ax.grid(alpha=0.3)
+    for key, style, name in (
+        ("task_probe_accuracy", "-", "z ~ E_phi (what the policy sees)"),
+        ("task_probe_accuracy_of_mean", ":", "mean of E_phi"),
+    ):
+        with_key = [r for r in runs if all(key in record for record in r.nt_records)]
+        probe = _mean_series(with_key, lambda r, key=key: nt_arrays(r, key), opts)
+        if probe is not None:
+            axes[2].plot(probe[0], probe[1], color="k", ls=style, lw=1, label=name)
+    axes[2].axhline(1.0 / n, color="gray", ls="--", lw=0.8, label="chance (1/N)")
+    axes[2].set_ylim(-0.02, 1.02)
+    axes[2].set_ylabel("linear probe of the task")
+    axes[2].legend(fontsize=7, loc="lower right")
+    axes[2].grid(alpha=0.3)
+    axes[2].set_xlabel(opts.xlabel)
+    axes[0].legend(fontsize=7, ncol=max(1, math.ceil(n / 10)), loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    _title(fig, f"{title}: negative-transfer measure, task weights and task information in z (mean over seeds)")
+    return fig
+
+
+def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
+    """Heatmaps of the N x N matrix J_i(theta^k) - J_i(theta) (mean over seeds) at the matrix times."""
+    names = [short_task_name(name) for name in runs[0].task_names]
+    times = _matrix_times(runs, opts)
+    side = 3.2 + 0.25 * len(names)
+    fig = _figure(side * len(times) + 0.8, side)
+    for ax, t in zip(fig.subplots(1, len(times), squeeze=False)[0], times):
+        matrices = []
+        for run in runs:
+            steps = np.array([r["timesteps"] for r in run.nt_records], float) * opts.xscale(run)
+            matrices.append(np.asarray(run.nt_records[int(np.argmin(np.abs(steps - t)))]["transfer_matrix"]))
+        matrix = np.mean(matrices, axis=0)
+        scale = float(np.max(np.abs(matrix))) or 1.0
+        image = ax.imshow(matrix, cmap="RdBu", norm=TwoSlopeNorm(0.0, -scale, scale))
+        ax.set_title(f"t = {t:,.0f}", fontsize=9)
+        ax.set_xticks(range(len(names)), names, fontsize=7, rotation=90)
+        ax.set_yticks(range(len(names)), names, fontsize=7)
+        ax.set_xlabel("task i (affected)", fontsize=8)
+        ax.set_ylabel("task k (virtual step)", fontsize=8)
+        fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
+    _title(fig, f"{title}: J_i(theta^k) - J_i(theta) (red < 0: a step on k hurts i); t in {opts.xlabel}", 9)
+    return fig
+
+
+def _matrix_times(runs: Sequence[Run], opts: PlotOptions) -> list[float]:
+    if opts.matrix_times:
+        return list(opts.matrix_times)
+    steps = np.array([r["timesteps"] for r in runs[0].nt_records], float) * opts.xscale(runs[0])
+    return sorted({float(steps[0]), float(steps[len(steps) // 2]), float(steps[-1])})
+
+
+__all__ = ["PlotOptions", "plot_bellman", "plot_negative_transfer", "plot_per_task", "plot_success", "safe_name"]

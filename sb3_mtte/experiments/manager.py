@@ -1,0 +1,332 @@
+"""rl-zoo3's ``ExperimentManager`` with one sub-env per task, multi-task evaluation, resumable checkpoints and
+run metadata.
+
+Everything else is rl-zoo's: hyperparameter files and ``-params`` overrides, run folders
+``<log-folder>/<algo>/<env>_<id>/``, ``config.yml``/``args.yml``, optuna, ``-i`` continued training, ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+from collections import OrderedDict, deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+from rl_zoo3.exp_manager import ExperimentManager
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import ProgressBarCallback
+from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
+
+from sb3_mtte.common.checkpoints import read_checkpoint_data
+from sb3_mtte.common.utils import get_task_names
+from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, ZooEvalCallback
+from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
+from sb3_mtte.experiments.configs import family_config_path
+from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
+from sb3_mtte.experiments.run_logs import NT_FILE, make_run_logger, set_aside_monitor_files, trim_jsonl
+
+LAUNCHER_YAML_KEYS = ("eval_freq", "eval_episodes", "save_freq")
+"""Hyperparameter-file keys read by the launcher (defaults of the command-line flags), not by the model."""
+
+
+@dataclass
+class LaunchOptions:
+    """Options of the launcher that rl-zoo's argument parser does not know."""
+
+    resume_dir: str | None = None
+    exp_id: int | None = None
+    flags_given: frozenset[str] = frozenset()
+    keep_buffers: int = 1
+    align_checkpoints: bool = True
+    tensorboard: bool = True
+    hyperparams: dict[str, dict[str, Any]] | None = None
+    """Every env entry of the variant's hyperparameters (:mod:`~sb3_mtte.experiments.configs`); None: rl-zoo reads
+    its ``-conf`` file."""
+
+
+class MultiTaskExperimentManager(ExperimentManager):
+    """rl-zoo's ExperimentManager with one sub-env per task, multi-task evaluation, resumable checkpoints
+    and run metadata (see the module docstring)."""
+
+    def __init__(self, args: argparse.Namespace, algo: str, env_id: str, *pos: Any, **kwargs: Any) -> None:
+        self.launch: LaunchOptions = kwargs.pop("launch", None) or LaunchOptions()
+        super().__init__(args, algo, env_id, *pos, **kwargs)
+        if self.launch.hyperparams is not None:
+            self.config = str(family_config_path(algo))
+        self.env_id = env_id
+        self.benchmark = split_env_id(env_id)[0]
+        self.n_tasks = env_id_n_tasks(env_id)
+        self.vec_env_class = MultiTaskVecEnvFactory(self.n_tasks, seed=self.seed, vec_env_cls=self.vec_env_class)
+        # tensorboard events go through the run logger (make_run_logger), not the model's own
+        self.tensorboard_dir = self.tensorboard_log
+        self.tensorboard_log = None
+        if self.launch.resume_dir is not None:
+            self.save_path = os.path.normpath(self.launch.resume_dir)
+            self.params_path = f"{self.save_path}/{self.env_name}"
+            self._restore_run_args()
+        elif self.launch.exp_id is not None:
+            self.save_path = os.path.join(self.log_path, f"{self.env_name}_{self.launch.exp_id}")
+            self.params_path = f"{self.save_path}/{self.env_name}"
+            if (Path(self.save_path) / run_info.RUN_INFO_FILE).is_file():
+                raise FileExistsError(f"{self.save_path} already holds a run: use --resume {self.save_path}.")
+        self.checkpoint: Checkpoint | None = None
+        self.resumed = False  # from a checkpoint
+        self.resume_step: int | None = None  # step the logs are trimmed to (0: resumed without checkpoint)
+        self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
+        self.eval_callback: ZooEvalCallback | None = None
+        self._eval_env: VecEnv | None = None
+
+    def _restore_run_args(self) -> None:
+        """Resuming: take the run's own command-line settings (its ``args.yml``) unless given again now."""
+        path = Path(self.params_path) / "args.yml"
+        if not path.is_file():
+            return
+        with open(path) as file:
+            saved = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
+        given = self.launch.flags_given
+        if "n_timesteps" not in given:
+            info = run_info.read_run_info(self.save_path) or {}
+            self.n_timesteps = int(info.get("n_timesteps", saved.get("n_timesteps", -1)))
+        if "env_kwargs" not in given:
+            self.env_kwargs = dict(saved.get("env_kwargs") or {})
+        if "eval_env_kwargs" not in given:
+            self._eval_env_kwargs_args = saved.get("eval_env_kwargs")
+            self.eval_env_kwargs = dict(self._eval_env_kwargs_args or self.env_kwargs)
+        if "vec_env" not in given and saved.get("vec_env") == "subproc":
+            self.vec_env_class.vec_env_cls = SubprocVecEnv
+        if "log_interval" not in given and "log_interval" in saved:
+            self.log_interval = int(saved["log_interval"])
+        if "save_replay_buffer" not in given and saved.get("save_replay_buffer"):
+            self.save_replay_buffer = True
+        if "tensorboard_log" not in given and saved.get("tensorboard_log"):
+            self.tensorboard_dir = os.path.join(saved["tensorboard_log"], self.env_name)
+
+    # ---- hyperparameters
+    def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
+        if self.launch.resume_dir is not None:
+            hyperparams = self._read_run_hyperparameters()
+        elif self.launch.hyperparams is not None:
+            hyperparams = self._read_variant_hyperparameters(self.launch.hyperparams)
+        else:
+            hyperparams, _ = super().read_hyperparameters()
+        n_envs = hyperparams.get("n_envs")
+        if n_envs is not None and int(n_envs) != self.n_tasks:
+            raise ValueError(f"n_envs={n_envs} in the hyperparameters, but {self.env_id} has {self.n_tasks} tasks.")
+        hyperparams["n_envs"] = self.n_tasks
+        for key in LAUNCHER_YAML_KEYS:
+            value = hyperparams.pop(key, None)
+            if value is None or key in self.launch.flags_given:
+                continue
+            if key == "eval_freq":
+                self.eval_freq = int(value)
+            elif key == "eval_episodes":
+                self.n_eval_episodes = int(value)
+            else:
+                self.save_freq = int(value)
+        saved = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
+        saved.update({key: value for key, value in self._zoo_yaml_values().items()})
+        saved = OrderedDict((key, saved[key]) for key in sorted(saved))
+        return hyperparams, saved
+
+    def _read_run_hyperparameters(self) -> dict[str, Any]:
+        """Resuming: the run's own ``config.yml`` (and ``-params`` given now)."""
+        config = Path(self.params_path) / "config.yml"
+        if not config.is_file():
+            raise FileNotFoundError(f"Cannot resume: {config} not found (not a run folder of the zoo?).")
+        print(f"Loading hyperparameters from: {config}")
+        with open(config) as file:
+            hyperparams = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
+        if self.custom_hyperparams is not None:
+            hyperparams.update(self.custom_hyperparams)
+        return hyperparams
+
+    def _read_variant_hyperparameters(self, entries: dict[str, dict[str, Any]]) -> dict[str, Any]:
+        """The env entry of the variant's composed hyperparameters, as rl-zoo reads an entry of a file."""
+        env_key = self.env_name.gym_id
+        if env_key not in entries:
+            raise ValueError(f"Hyperparameters not found for {self.algo}-{env_key} in {self.config}")
+        print(f"Loading hyperparameters from: {self.config} + the overrides of {self.algo}")
+        hyperparams = dict(entries[env_key])
+        if self.storage and self.study_name and self.trial_id:
+            hyperparams.update(self.load_trial(self.storage, self.study_name, self.trial_id))
+        if self.custom_hyperparams is not None:
+            hyperparams.update(self.custom_hyperparams)
+        if "env_kwargs" in hyperparams and self.env_kwargs:
+            hyperparams["env_kwargs"] = self.env_kwargs
+            if self._eval_env_kwargs_args is None:
+                self.eval_env_kwargs = hyperparams["env_kwargs"]
+        return hyperparams
+
+    def _zoo_yaml_values(self) -> dict[str, int]:
+        return {"eval_freq": self.eval_freq, "eval_episodes": self.n_eval_episodes, "save_freq": self.save_freq}
+
+    # ---- envs and callbacks
+    def create_envs(self, n_envs: int, eval_env: bool = False, no_log: bool = False) -> VecEnv:
+        return super().create_envs(self.n_tasks, eval_env=eval_env, no_log=no_log)
+
+    def create_callbacks(self) -> None:
+        if self.show_progress:
+            self.callbacks.append(ProgressBarCallback())
+        if self.eval_freq > 0 and not self.optimize_hyperparameters:
+            self._eval_env = self.create_envs(self.n_tasks, eval_env=True)
+            self.eval_callback = ZooEvalCallback(
+                self._eval_env,
+                eval_freq=max(self.eval_freq // self.n_tasks, 1),
+                episodes_per_task=self.n_eval_episodes,
+                deterministic=self.deterministic_eval,
+                log_path=self.save_path,
+                best_model_save_path=self.save_path,
+                verbose=self.verbose,
+            )
+        if self.save_freq > 0 and not self.optimize_hyperparameters:
+            self.checkpoint_callback = MultiTaskCheckpointCallback(
+                save_freq=self.save_freq,
+                save_path=self.save_path,
+                seed=self.seed,
+                eval_env=self._eval_env,
+                keep_buffers=self.launch.keep_buffers,
+                align_to_episodes=self.launch.align_checkpoints,
+                verbose=self.verbose,
+            )
+            self.callbacks.append(self.checkpoint_callback)
+        if self.eval_callback is not None:
+            self.callbacks.append(self.eval_callback)
+
+    # ---- set-up
+    def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
+        if self.launch.resume_dir is not None:
+            return self._setup_resume()
+        result = super().setup_experiment()
+        if result is not None:
+            self._write_run_info(*result)
+        return result
+
+    def _setup_resume(self) -> tuple[BaseAlgorithm, dict[str, Any]]:
+        run_dir = Path(self.save_path)
+        self.checkpoint = find_latest_checkpoint(run_dir)
+        final = self._final_checkpoint(run_dir)
+        if final is not None and (self.checkpoint is None or final.timesteps > self.checkpoint.timesteps):
+            self.checkpoint = final
+        step = self.checkpoint.timesteps if self.checkpoint is not None else 0
+        self.resume_step = step
+        print(f"Resuming {run_dir} from " + (f"{self.checkpoint.model.name}" if self.checkpoint else "scratch"))
+        set_aside_monitor_files(run_dir)
+        trim_jsonl(run_dir / NT_FILE, step)
+        if self.checkpoint is None:
+            result = super().setup_experiment()
+            assert result is not None
+            run_info.append_resume(run_dir, checkpoint=None, timesteps=0)
+            return result
+        unprocessed, saved = self.read_hyperparameters()
+        hyperparams, self.env_wrapper, self.callbacks, self.vec_env_wrapper = self._preprocess_hyperparams(unprocessed)
+        self.create_log_folder()
+        self.create_callbacks()
+        env = self.create_envs(self.n_tasks, no_log=False)
+        hyperparams = self._preprocess_action_noise(hyperparams, saved, env)
+        overrides = {k: v for k, v in hyperparams.items() if k in (self.custom_hyperparams or {})}
+        overrides.pop("policy", None)
+        overrides.pop("policy_kwargs", None)
+        model = load_model(self.checkpoint.model, device=self.device, env=env, verbose=self.verbose, **overrides)
+        if self.checkpoint.replay_buffer is not None:
+            model.load_replay_buffer(self.checkpoint.replay_buffer)
+        restart_envs(model, self._eval_env, self.seed, step)
+        if "task_success" in self.checkpoint.meta:
+            window = getattr(model, "_stats_window_size", 100)
+            model._task_success = [deque(v, maxlen=window) for v in self.checkpoint.meta["task_success"]]
+        self.resumed = True
+        run_info.append_resume(
+            run_dir, checkpoint=self.checkpoint.model.name, timesteps=step, meta=self.checkpoint.meta
+        )
+        return model, saved
+
+    def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
+        if self.launch.resume_dir is None:  # a resumed run keeps its own config.yml, args.yml and command
+            super()._save_config(saved_hyperparams)
+
+    def _final_checkpoint(self, run_dir: Path) -> Checkpoint | None:
+        """The final model and replay buffer of a run that finished (``--save-replay-buffer``), if any."""
+        info = run_info.read_run_info(run_dir) or {}
+        model, buffer = run_dir / f"{self.env_name}.zip", run_dir / "replay_buffer.pkl"
+        if not (info.get("finished") and model.is_file() and buffer.is_file()):
+            return None
+        steps = int(read_checkpoint_data(model).get("num_timesteps", 0))
+        return Checkpoint(steps, model, buffer, {"timesteps": steps, "final_model": True})
+
+    def _write_run_info(self, model: BaseAlgorithm, saved: dict[str, Any]) -> None:
+        env = model.get_env()
+        episode_length = None
+        with contextlib.suppress(Exception):
+            episode_length = int(env.get_attr("_max_episode_steps", [0])[0])  # type: ignore[union-attr]
+        info = run_info.collect_run_info(
+            algo=self.algo,
+            env_id=self.env_id,
+            seed=self.seed,
+            benchmark=self.benchmark,
+            hyperparams=saved,
+            algorithm_class=type(model).__name__,
+            n_tasks=self.n_tasks,
+            task_names=get_task_names(env) if env is not None else benchmark_task_names(self.benchmark),
+            benchmark_seed=self.seed,
+            episode_length=episode_length,
+            n_timesteps=self.n_timesteps,
+            run_dir=os.path.abspath(self.save_path),
+            zoo_args={k: run_info.to_jsonable(v) for k, v in sorted(vars(self.args).items())},
+            launcher={
+                "tensorboard": self.launch.tensorboard,
+                "keep_buffers": self.launch.keep_buffers,
+                "align_checkpoints": self.launch.align_checkpoints,
+            },
+        )
+        run_info.write_run_info(self.save_path, info)
+
+    # ---- training
+    def learn(self, model: BaseAlgorithm) -> None:
+        step = self.resume_step
+        tb_dir = None
+        if self.tensorboard_dir is not None:
+            tb_dir = os.path.join(self.tensorboard_dir, f"{self.algo}_{os.path.basename(self.save_path)}")
+        model.set_logger(make_run_logger(self.save_path, self.verbose, tb_dir, step, self.launch.tensorboard))
+        if step is not None and self.eval_callback is not None:
+            self.eval_callback.load_history(step)
+            self.eval_callback.n_calls = step // self.n_tasks
+        if not self.resumed:
+            super().learn(model)
+            return
+        kwargs: dict[str, Any] = {}
+        if self.log_interval > -1:
+            kwargs["log_interval"] = self.log_interval
+        elif self.log_interval < -1:
+            kwargs["log_interval"] = None
+        if self.callbacks:
+            kwargs["callback"] = self.callbacks
+        remaining = self.n_timesteps - model.num_timesteps
+        try:
+            if remaining > 0:
+                model.learn(remaining, reset_num_timesteps=False, **kwargs)
+            else:
+                print(f"Nothing to do: the run is at {model.num_timesteps} of {self.n_timesteps} steps.")
+        except KeyboardInterrupt:
+            pass
+        finally:
+            if self.callbacks and remaining > 0:
+                self.callbacks[0].on_training_end()
+            with contextlib.suppress(EOFError):
+                model.get_env().close()  # type: ignore[union-attr]
+
+    def save_trained_model(self, model: BaseAlgorithm) -> None:
+        super().save_trained_model(model)
+        run_info.update_run_info(
+            self.save_path,
+            timesteps=int(model.num_timesteps),
+            n_updates=int(getattr(model, "_n_updates", 0)),
+            finished=bool(model.num_timesteps >= self.n_timesteps),
+            ended=run_info.now(),
+            final_model=f"{self.env_name}.zip",
+        )
+        if self._eval_env is not None:
+            self._eval_env.close()

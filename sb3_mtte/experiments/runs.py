@@ -1,0 +1,239 @@
+"""Reading a folder of runs for the figures and tables: run folders, their scalars and curves.
+
+A run folder holds:
+
+- ``run_info.json``: algorithm, env, seed, task names (required);
+- ``evaluations.npz``: ``timesteps`` (T,), ``success_rate`` (T, N), ``task_names`` (periodic evaluations);
+- ``progress.csv``: SB3's csv log (``eval/success/NN_task``, ``rollout/success/NN_task``,
+  ``train/critic_loss/NN_task``, ``nt/mu/NN_task``, ...); tensorboard events are read instead when it is missing;
+- ``negative_transfer.jsonl`` (MTSACTE): per recomputation ``timesteps``, ``mu``, ``selected``, ``weights``,
+  ``transfer_matrix``;
+- ``success.json`` (``sb3-mtte evaluate``): the final evaluation.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tensorboard.backend.event_processing import event_accumulator
+
+from sb3_mtte.common.utils import task_log_key
+from sb3_mtte.experiments.run_info import RUN_INFO_FILE
+from sb3_mtte.experiments.variants import variant_labels
+
+Series = tuple[np.ndarray, np.ndarray]
+
+
+def read_progress_csv(path: Path) -> dict[str, Series]:
+    """Scalars of an SB3 ``progress.csv``: tag -> (total timesteps, values), rows without the value dropped."""
+    with open(path, newline="") as file:
+        rows = list(csv.DictReader(file))
+    if not rows:
+        return {}
+
+    def number(text: str | None) -> float:
+        try:
+            return float(text) if text not in (None, "") else math.nan
+        except ValueError:
+            return math.nan
+
+    steps = np.array([number(row.get("time/total_timesteps")) for row in rows])
+    scalars = {}
+    for key in rows[0]:
+        if key is None or key == "time/total_timesteps":
+            continue
+        values = np.array([number(row.get(key)) for row in rows])
+        keep = np.isfinite(values) & np.isfinite(steps)
+        if keep.any():
+            scalars[key] = (steps[keep], values[keep])
+    return scalars
+
+
+def read_tensorboard(run_dir: Path) -> dict[str, Series]:
+    """Scalars of the tensorboard events under ``run_dir``: tag -> (steps, values)."""
+    scalars: dict[str, Series] = {}
+    folders = sorted({p.parent for p in run_dir.rglob("events.out.tfevents.*")})
+    for folder in folders:
+        accumulator = event_accumulator.EventAccumulator(str(folder), size_guidance={event_accumulator.SCALARS: 0})
+        accumulator.Reload()
+        for tag in accumulator.Tags().get("scalars", []):
+            events = accumulator.Scalars(tag)
+            steps = np.array([e.step for e in events], dtype=float)
+            values = np.array([e.value for e in events], dtype=float)
+            if tag in scalars:  # several event folders: keep the later folder's values at equal steps
+                old_steps, old_values = scalars[tag]
+                keep = ~np.isin(old_steps, steps)
+                steps, values = np.concatenate([old_steps[keep], steps]), np.concatenate([old_values[keep], values])
+            order = np.argsort(steps, kind="stable")
+            scalars[tag] = (steps[order], values[order])
+    return scalars
+
+
+@dataclass
+class Run:
+    """One run folder."""
+
+    path: Path
+    info: dict[str, Any]
+    evaluations: dict[str, np.ndarray] | None = None
+    scalars: dict[str, Series] = field(default_factory=dict)
+    nt_records: list[dict[str, Any]] = field(default_factory=list)
+    final: dict[str, Any] | None = None
+
+    @property
+    def label(self) -> str:
+        return str(self.info.get("label") or self.info.get("algo") or self.path.parent.name)
+
+    @property
+    def benchmark(self) -> str:
+        return str(self.info.get("env_id") or self.info.get("benchmark") or "unknown")
+
+    @property
+    def seed(self) -> int | None:
+        return self.info.get("seed")
+
+    @property
+    def task_names(self) -> list[str]:
+        names = self.info.get("task_names")
+        if not names and self.evaluations is not None:
+            names = [str(n) for n in self.evaluations["task_names"]]
+        return list(names or [])
+
+    @property
+    def n_tasks(self) -> int:
+        return int(self.info.get("n_tasks") or len(self.task_names) or 1)
+
+    def scalar(self, key: str) -> Series | None:
+        return self.scalars.get(key)
+
+
+def load_run(path: Path) -> Run:
+    """Read a run folder (see the module docstring)."""
+    info = json.loads((path / RUN_INFO_FILE).read_text())
+    run = Run(path, info)
+    if (path / "evaluations.npz").is_file():
+        with np.load(path / "evaluations.npz") as data:
+            run.evaluations = {key: np.asarray(data[key]) for key in data.files}
+    if (path / "progress.csv").is_file():
+        run.scalars = read_progress_csv(path / "progress.csv")
+    elif any(path.rglob("events.out.tfevents.*")):
+        run.scalars = read_tensorboard(path)
+    if (path / "negative_transfer.jsonl").is_file():
+        for line in (path / "negative_transfer.jsonl").read_text().splitlines():
+            try:
+                run.nt_records.append(json.loads(line))
+            except json.JSONDecodeError:
+                continue
+    if (path / "success.json").is_file():
+        run.final = json.loads((path / "success.json").read_text())
+    return run
+
+
+def discover_runs(runs_dir: str | Path) -> list[Run]:
+    """Every run folder (one holding ``run_info.json``) under ``runs_dir``, sorted by path."""
+    paths = sorted(p.parent for p in Path(runs_dir).rglob(RUN_INFO_FILE))
+    return [load_run(p) for p in paths]
+
+
+def group_runs(runs: Sequence[Run]) -> dict[str, dict[str, list[Run]]]:
+    """benchmark -> algorithm label -> runs (its seeds)."""
+    groups: dict[str, dict[str, list[Run]]] = {}
+    for run in runs:
+        groups.setdefault(run.benchmark, {}).setdefault(run.label, []).append(run)
+    return groups
+
+
+def label_order(labels: Sequence[str]) -> list[str]:
+    """``labels`` in the order of the variants (Table 1, then Fig. 7), then anything else alphabetically."""
+    known = variant_labels()
+    return [label for label in known if label in labels] + sorted(label for label in labels if label not in known)
+
+
+def success_curve(run: Run, task: int | None = None) -> Series | None:
+    """Success over time (mean over tasks, or of task ``task``): evaluations, else eval/ scalars, else rollout/."""
+    if run.evaluations is not None and len(run.evaluations.get("timesteps", [])):
+        rates = np.asarray(run.evaluations["success_rate"], dtype=float)
+        values = rates.mean(axis=1) if task is None else rates[:, task]
+        return np.asarray(run.evaluations["timesteps"], dtype=float), values
+    for prefix in ("eval", "rollout"):
+        if task is None:
+            series = run.scalar(f"{prefix}/success_rate")
+        else:
+            series = run.scalar(task_log_key(f"{prefix}/success", task, run.task_names[task]))
+        if series is not None:
+            return series
+    if task is None:  # mean of the per-task rollout curves
+        curves = [success_curve(run, i) for i in range(run.n_tasks)]
+        if all(c is not None for c in curves) and curves:
+            return mean_std([c for c in curves if c is not None])[:2]
+    return None
+
+
+def task_scalar(run: Run, prefix: str, task: int) -> Series | None:
+    return run.scalar(task_log_key(prefix, task, run.task_names[task] if task < len(run.task_names) else None))
+
+
+def smooth(values: np.ndarray, window: int) -> np.ndarray:
+    """Trailing moving average over ``window`` points (1 = none)."""
+    if window <= 1 or len(values) < 2:
+        return values
+    cumsum = np.cumsum(np.insert(np.asarray(values, dtype=float), 0, 0.0))
+    out = np.empty(len(values))
+    for j in range(len(values)):
+        lo = max(0, j + 1 - window)
+        out[j] = (cumsum[j + 1] - cumsum[lo]) / (j + 1 - lo)
+    return out
+
+
+def mean_std(curves: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Mean and std over curves (seeds) on a common x grid (their shared range; interpolated where needed)."""
+    curves = [(np.asarray(x, float), np.asarray(y, float)) for x, y in curves if len(x)]
+    if not curves:
+        return np.zeros(0), np.zeros(0), np.zeros(0)
+    if len(curves) == 1:
+        x, y = curves[0]
+        return x, y, np.zeros_like(y)
+    lo, hi = max(x.min() for x, _ in curves), min(x.max() for x, _ in curves)
+    grid = np.unique(np.concatenate([x[(x >= lo) & (x <= hi)] for x, _ in curves]))
+    if len(grid) == 0:
+        grid = curves[0][0]
+    stacked = np.stack([np.interp(grid, x, y) for x, y in curves])
+    return grid, stacked.mean(axis=0), stacked.std(axis=0)
+
+
+def nt_arrays(run: Run, key: str) -> tuple[np.ndarray, np.ndarray]:
+    steps = np.array([record["timesteps"] for record in run.nt_records], dtype=float)
+    values = np.array([record[key] for record in run.nt_records], dtype=float)
+    return steps, values
+
+
+def train_frequency(run: Run, window_steps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Fraction of the recomputations within the last ``window_steps`` (total env steps) in which each task was
+    in C_s: ``(steps (R,), frequency (R, N))``."""
+    steps, selected = nt_arrays(run, "selected")
+    freq = np.empty_like(selected)
+    start = 0
+    for j, t in enumerate(steps):
+        while steps[start] <= t - window_steps:
+            start += 1
+        freq[j] = selected[start : j + 1].mean(axis=0)
+    return steps, freq
+
+
+def episode_length(run: Run) -> int:
+    length = run.info.get("episode_length")
+    if length:
+        return int(length)
+    return 50 if str(run.info.get("benchmark", "")).startswith("toy") else 500
+
+
+def nt_series(run: Run, key: str, task: int) -> Series:
+    steps, values = nt_arrays(run, key)
+    return steps, values[:, task]

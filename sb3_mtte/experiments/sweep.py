@@ -1,0 +1,232 @@
+"""Run a grid of zoo training runs (algorithms x envs x seeds) on Ray Tune, one trial per run.
+
+Usage::
+
+    python -m sb3_mtte.sweep --algos mtsacte mtsac_mt mtsac_mh --envs MT10 MT20 --seeds 0 1 2 3 4 \\
+        --budget smoke --out runs/ [--address ray://HEAD:10001] [--cpus-per-trial 2] [--gpus-per-trial 0.5] \\
+        [--max-concurrent 8] [--retries 2] [--resume] [-- EXTRA ZOO TRAIN FLAGS]
+
+Every trial runs ``python -m sb3_mtte.zoo train --algo A --env E --seed S -f OUT --exp-id K`` in a Ray worker
+(``ray.init()`` starts a local Ray by default; ``--address`` joins a cluster, whose nodes need this package and a
+file system shared at OUT). Results land in the zoo layout that ``python -m sb3_mtte.plot OUT`` reads:
+``OUT/<algo>/<env>_<K>/``; ``--budget smoke`` trains the ``<env>-smoke`` entry of each hyperparameter file
+(``OUT/<algo>/<env>-smoke_<K>/``). The trial list, with each trial's run folder, is kept in ``OUT/sweep.json``;
+``--resume`` re-runs the same trials: finished ones are skipped and the others continue from their last
+checkpoint (a retried trial, ``--retries``, does the same). Ray Tune's own records go to ``OUT/_ray``.
+
+Ray is an optional dependency: ``pip install "sb3-mtte[ray]"`` (or ``pip install "ray[tune]"``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from huggingface_sb3 import EnvironmentName
+from rl_zoo3.utils import get_latest_run_id
+
+from sb3_mtte.experiments import launcher, run_info
+
+SWEEP_FILE = "sweep.json"
+BUDGETS = ("full", "smoke", "cpu")
+
+
+def import_ray() -> Any:
+    """Import ray (with Tune), or fail with how to install it."""
+    try:
+        import ray
+        from ray import tune  # noqa: F401
+    except ImportError as error:  # pragma: no cover - depends on the environment
+        raise ImportError(
+            'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
+        ) from error
+    return ray
+
+
+def env_id_for(env: str, budget: str) -> str:
+    """The env id of a benchmark at a budget: ``MT10`` + ``smoke`` -> ``MT10-smoke``."""
+    if budget not in BUDGETS:
+        raise ValueError(f"budget must be one of {BUDGETS}, got {budget!r}.")
+    return env if budget == "full" else f"{env}-{budget}"
+
+
+def plan_trials(
+    out: Path, algos: Sequence[str], envs: Sequence[str], seeds: Sequence[int], budget: str, resume: bool
+) -> list[dict[str, Any]]:
+    """The trials of the grid, each with its run folder (reused from ``sweep.json`` when resuming)."""
+    previous = []
+    if resume and (out / SWEEP_FILE).is_file():
+        previous = json.loads((out / SWEEP_FILE).read_text()).get("trials", [])
+    known = {(t["algo"], t["env_id"], t["seed"]): t for t in previous}
+    next_id: dict[tuple[str, str], int] = {}
+    trials = []
+    for algo in algos:
+        for env in envs:
+            env_id = env_id_for(env, budget)
+            for seed in seeds:
+                if (algo, env_id, seed) in known:
+                    trials.append(dict(known[(algo, env_id, seed)]))
+                    continue
+                key = (algo, env_id)
+                if key not in next_id:
+                    next_id[key] = get_latest_run_id(str(out / algo), EnvironmentName(env_id)) + 1
+                exp_id = next_id[key]
+                next_id[key] += 1
+                run_dir = out / algo / f"{EnvironmentName(env_id)}_{exp_id}"
+                trials.append(
+                    {"algo": algo, "env_id": env_id, "seed": int(seed), "exp_id": exp_id, "run_dir": str(run_dir)}
+                )
+    return trials
+
+
+def trial_command(trial: dict[str, Any], out: Path, extra: Sequence[str], cpus: float) -> list[str]:
+    """``sb3-mtte`` arguments of a trial: a new run, or the resumption of its run folder."""
+    run_dir = Path(trial["run_dir"])
+    argv = ["train", "--algo", trial["algo"], "--env", trial["env_id"], "-f", str(out), "--no-progress"]
+    if run_info.read_run_info(run_dir) is not None:
+        argv += ["--resume", str(run_dir)]
+    else:
+        argv += ["--seed", str(trial["seed"]), "--exp-id", str(trial["exp_id"])]
+    if "--num-threads" not in extra:
+        argv += ["--num-threads", str(max(1, int(cpus)))]
+    return argv + list(extra)
+
+
+def run_trial(config: dict[str, Any]) -> dict[str, Any]:
+    """Ray Tune trainable: run (or resume, or skip when finished) one zoo training run and report its result."""
+    from ray import tune
+
+    trial = config["trial"]
+    run_dir = Path(trial["run_dir"])
+    info = run_info.read_run_info(run_dir)
+    if info is None or not info.get("finished"):
+        command = trial_command(trial, Path(config["out"]), config["extra"], config["cpus"])
+        launcher.train(command[1:])
+        info = run_info.read_run_info(run_dir) or {}
+    result = {"timesteps": int(info.get("timesteps", 0)), "finished": bool(info.get("finished"))}
+    success = last_success(run_dir)
+    if success is not None:
+        result["success"] = success
+    tune.report(result)
+    return result
+
+
+def last_success(run_dir: Path) -> float | None:
+    """Mean success of the last evaluation of a run folder (``evaluations.npz``), or None."""
+    path = run_dir / "evaluations.npz"
+    if not path.is_file():
+        return None
+    with np.load(path) as data:
+        if len(data["timesteps"]) == 0:
+            return None
+        return float(np.mean(data["success_rate"][-1]))
+
+
+def write_sweep_file(out: Path, trials: list[dict[str, Any]], args: argparse.Namespace, extra: Sequence[str]) -> None:
+    """Write the trial list of the sweep (``OUT/sweep.json``)."""
+    record = {
+        "updated": run_info.now(),
+        "command": " ".join(getattr(sys, "orig_argv", sys.argv)),
+        "budget": args.budget,
+        "extra_zoo_args": list(extra),
+        "trials": trials,
+    }
+    (out / SWEEP_FILE).write_text(json.dumps(record, indent=2) + "\n")
+
+
+def run_sweep(args: argparse.Namespace, extra: Sequence[str]) -> list[dict[str, Any]]:
+    """Plan the trials, run them on Ray Tune and return them with their status and result."""
+    ray = import_ray()
+    from ray import tune
+
+    out = Path(args.out).resolve()
+    out.mkdir(parents=True, exist_ok=True)
+    trials = plan_trials(out, args.algos, args.envs, args.seeds, args.budget, args.resume)
+    write_sweep_file(out, trials, args, extra)
+    init_kwargs: dict[str, Any] = {"ignore_reinit_error": True, "include_dashboard": False}
+    if args.address:
+        init_kwargs["address"] = args.address
+    elif args.num_cpus is not None:
+        init_kwargs["num_cpus"] = args.num_cpus
+    ray.init(**init_kwargs)
+    resources = {"cpu": args.cpus_per_trial, "gpu": args.gpus_per_trial}
+    tuner = tune.Tuner(
+        tune.with_resources(run_trial, resources),
+        param_space={
+            "trial": tune.grid_search(trials),
+            "out": str(out),
+            "extra": list(extra),
+            "cpus": args.cpus_per_trial,
+        },
+        tune_config=tune.TuneConfig(max_concurrent_trials=args.max_concurrent),
+        run_config=tune.RunConfig(
+            name=f"sweep_{time.strftime('%Y%m%d-%H%M%S')}",
+            storage_path=str(out / "_ray"),
+            failure_config=tune.FailureConfig(max_failures=args.retries),
+            verbose=args.ray_verbose,
+        ),
+    )
+    results = tuner.fit()
+    for trial, result in zip(trials, _results_by_trial(results, trials)):
+        trial["status"] = "error" if result is None or result.error else "done"
+        if result is not None and result.error:
+            trial["error"] = str(result.error).splitlines()[0][:500]
+        info = run_info.read_run_info(trial["run_dir"]) or {}
+        trial["finished"] = bool(info.get("finished"))
+        trial["timesteps"] = info.get("timesteps")
+        trial["success"] = last_success(Path(trial["run_dir"]))
+    write_sweep_file(out, trials, args, extra)
+    _print_summary(trials)
+    return trials
+
+
+def _results_by_trial(results: Any, trials: list[dict[str, Any]]) -> list[Any]:
+    """Ray results in the order of ``trials`` (matched by run folder)."""
+    by_dir = {}
+    for result in results:
+        config = result.config or {}
+        run_dir = config.get("trial", {}).get("run_dir")
+        by_dir[run_dir] = result
+    return [by_dir.get(trial["run_dir"]) for trial in trials]
+
+
+def _print_summary(trials: list[dict[str, Any]]) -> None:
+    print(f"\n{'algo':<22} {'env':<16} {'seed':>4}  {'status':<6} {'steps':>10}  success  run folder")
+    for t in trials:
+        success = "" if t.get("success") is None else f"{100 * t['success']:6.1f}%"
+        steps = t.get("timesteps") or 0
+        print(
+            f"{t['algo']:<22} {t['env_id']:<16} {t['seed']:>4}  {t.get('status', ''):<6} {steps:>10}  "
+            f"{success:>7}  {t['run_dir']}"
+        )
+
+
+def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
+    """``python -m sb3_mtte.sweep --algos ... --envs ... --seeds ... [options] [-- zoo train flags]``"""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra: list[str] = []
+    if "--" in argv:
+        cut = argv.index("--")
+        argv, extra = argv[:cut], argv[cut + 1 :]
+    parser = argparse.ArgumentParser(prog="python -m sb3_mtte.sweep", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
+    parser.add_argument("--envs", nargs="+", required=True, help="benchmarks (MT10, MT20, toy-conflict, ...)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="seeds (default 0)")
+    parser.add_argument("--budget", choices=BUDGETS, default="full", help="hyperparameter entry: full, smoke or cpu")
+    parser.add_argument("--out", required=True, help="runs folder (the zoo's -f)")
+    parser.add_argument("--address", default=None, help="Ray cluster address (default: start Ray locally)")
+    parser.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
+    parser.add_argument("--cpus-per-trial", type=float, default=1.0)
+    parser.add_argument("--gpus-per-trial", type=float, default=0.0)
+    parser.add_argument("--max-concurrent", type=int, default=0, help="max trials at once (0: as resources allow)")
+    parser.add_argument("--retries", type=int, default=0, help="retries of a failed trial (each resumes its run)")
+    parser.add_argument("--resume", action="store_true", help="re-run the trials of OUT/sweep.json: skip finished")
+    parser.add_argument("--ray-verbose", type=int, default=1, help="Ray Tune verbosity (0-3)")
+    args = parser.parse_args(argv)
+    return run_sweep(args, extra)

@@ -1,0 +1,90 @@
+"""Tests of the variant registry, the composed hyperparameters and the ``sb3-mtte`` command."""
+
+from __future__ import annotations
+
+import configparser
+import json
+from pathlib import Path
+
+import pytest
+import yaml
+from conftest import ENV, tiny_train
+
+from sb3_mtte.experiments import cli, evaluate, plot
+from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.run_info import read_run_info
+from sb3_mtte.experiments.runs import label_order
+from sb3_mtte.experiments.variants import (
+    VARIANTS,
+    Variant,
+    algo_classes,
+    paper_table1,
+    register_variant,
+    unregister_variant,
+    variant_labels,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+FROZEN = Path(__file__).resolve().parent / "data" / "zoo_hyperparameters.json"
+
+
+def test_composed_hyperparameters_equal_the_former_per_variant_files():
+    """Family file + overrides gives every key, for every env entry, exactly the values its own file held."""
+    frozen = json.loads(FROZEN.read_text())
+    assert set(frozen) == set(VARIANTS)
+    for algo, entries in frozen.items():
+        assert zoo_hyperparameters(algo) == entries, algo
+
+
+def test_registry_gives_keys_labels_and_order():
+    assert set(algo_classes()) == {"mtsac", *VARIANTS}
+    assert variant_labels()[:6] == ["SAC-Ind", "SAC-MT", "SAC-MT-MH", "SAC-soft-modular", "SAC-MT-with-clip", "Ours"]
+    assert paper_table1()["Ours"] == {"MT10": 89.3, "MT20": 70.1}
+    assert label_order(["zzz", "Ours", "SAC-MT"]) == ["SAC-MT", "Ours", "zzz"]
+    with pytest.raises(ValueError, match="exists"):
+        register_variant(Variant("mtsac_mt", "SAC-MT", "mtsac"))
+    with pytest.raises(ValueError, match="Unknown family"):
+        register_variant(Variant("other", "Other", "no-family"))
+
+
+def test_user_config_file_is_read_as_in_rl_zoo(tmp_path):
+    entry = dict(zoo_hyperparameters("mtsac_mt")[ENV], batch_size=16, tau=0.02)
+    config = tmp_path / "my.yml"
+    config.write_text(yaml.safe_dump({ENV: entry}))
+    run = tiny_train(tmp_path, "mtsac_mt", "-conf", str(config), steps=200)
+    saved = yaml.load((run / ENV / "config.yml").read_text(), Loader=yaml.UnsafeLoader)
+    assert saved["batch_size"] == 16 and saved["tau"] == 0.02
+
+
+def test_a_registered_variant_trains_evaluates_and_plots(tmp_path):
+    """Adding a variant is one registration: zoo key, hyperparameters, label and order follow."""
+    variant = Variant("mtsac_probe", "SAC-MT-probe", "mtsac", "MultiHeadPolicy", overrides={"tau": 0.02})
+    register_variant(variant)
+    try:
+        assert zoo_hyperparameters("mtsac_probe")[ENV]["tau"] == 0.02
+        run = tiny_train(tmp_path / "runs", "mtsac_probe", "-params", "learning_starts:100", steps=200)
+        info = read_run_info(run)
+        assert info["label"] == "SAC-MT-probe" and info["hyperparams"]["policy"] == "MultiHeadPolicy"
+        record = evaluate.main([str(run / f"{ENV}.zip"), "--episodes", "1"])
+        assert record["label"] == "SAC-MT-probe"
+        written = plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures")])
+        assert tmp_path / "figures" / f"success_{ENV}.png" in written
+        assert "| SAC-MT-probe |" in (tmp_path / "figures" / "table1.md").read_text()
+    finally:
+        unregister_variant("mtsac_probe")
+    assert "mtsac_probe" not in VARIANTS
+
+
+def test_console_script_is_declared_and_dispatches(capsys):
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    scripts = config["options.entry_points"]["console_scripts"].strip()
+    assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:main"
+    assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "plot", "sweep"}
+    for command in cli.COMMANDS:
+        with pytest.raises(SystemExit) as exit_info:
+            cli.main([command, "--help"])
+        assert exit_info.value.code == 0, command
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["unknown"])
+    assert exit_info.value.code == 2 and "sb3-mtte" in capsys.readouterr().out
