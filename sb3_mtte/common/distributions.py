@@ -20,6 +20,11 @@ def split_mean_log_std(params: th.Tensor) -> tuple[th.Tensor, th.Tensor]:
     return mean, log_std.clamp(LOG_STD_MIN, LOG_STD_MAX)
 
 
+def gaussian_sample(mean: th.Tensor, log_std: th.Tensor, noise: th.Tensor) -> th.Tensor:
+    """Reparameterised sample ``mean + std * noise`` of a diagonal Gaussian, ``noise`` standard normal."""
+    return mean + log_std.exp() * noise
+
+
 def squashed_gaussian_sample(
     mean: th.Tensor, log_std: th.Tensor, noise: th.Tensor | None = None
 ) -> tuple[th.Tensor, th.Tensor]:
@@ -34,8 +39,7 @@ def squashed_gaussian_sample(
     """
     if noise is None:
         noise = th.randn_like(mean)
-    pre_tanh = mean + log_std.exp() * noise
-    action = th.tanh(pre_tanh)
+    action = th.tanh(gaussian_sample(mean, log_std, noise))
     gaussian_log_prob = -0.5 * noise.pow(2) - log_std - 0.5 * math.log(2 * math.pi)
     log_prob = (gaussian_log_prob - th.log(1.0 - action.pow(2) + _TANH_EPS)).sum(dim=-1)
     return action, log_prob

@@ -10,7 +10,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_mtte.common.distributions import split_mean_log_std
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
 
@@ -103,7 +103,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
     def embed(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
         """z ~ E_phi(.|s, one-hot), or its mean when deterministic."""
         mean, log_std = self.embedding_params(obs)
-        return mean if deterministic else mean + log_std.exp() * th.randn_like(mean)
+        return mean if deterministic else gaussian_sample(mean, log_std, th.randn_like(mean))
 
     def actor_input(self, state: th.Tensor, z: th.Tensor) -> th.Tensor:
         """The input of pi_theta: the state followed by z."""

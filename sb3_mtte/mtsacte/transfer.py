@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import torch as th
 from torch.func import functional_call, grad, vjp, vmap
 
-from sb3_mtte.common.distributions import split_mean_log_std
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
 from sb3_mtte.common.losses import sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     negative_transfer_objective,
@@ -78,7 +78,7 @@ class TaskObjectives:
     def embedding(self, encoder_params: Params) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """z = mean + std * noise from E_phi, with its mean and log-std, each ``(N, L, ...)``."""
         mean, log_std = split_mean_log_std(functional_call(self.policy.encoder, encoder_params, (self.batch.obs,)))
-        return mean + log_std.exp() * self.batch.z_noise, mean, log_std
+        return gaussian_sample(mean, log_std, self.batch.z_noise), mean, log_std
 
     def _single(self, theta: Params, q_params: Params, state: th.Tensor, z: th.Tensor, noise: th.Tensor, beta):
         """J_SAC of one task from its ``(L, ...)`` slice of the batch, through the actor's training forward pass."""
