@@ -89,6 +89,8 @@ def test_task_major_path_equals_gather_path(actor_class):
     permutation = th.randperm(n * length)
     gathered = actor.dist_params(obs[permutation], task_ids[permutation])
     assert th.allclose(batched[permutation], gathered, atol=1e-5)
+    # Acting reads the tasks from the one-hot: its deterministic action is tanh of the task-major mean.
+    assert th.allclose(actor.act(obs[permutation], deterministic=True), th.tanh(batched[permutation, :2]), atol=1e-5)
 
 
 def test_independent_actor_equals_separate_networks():
