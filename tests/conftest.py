@@ -145,8 +145,8 @@ def loop_objective(policy, actor, batch: RepresentationBatch, ent_coef: th.Tenso
 def stepped_actor(policy, batch, ent_coef, k: int, z: list[th.Tensor], step_size: float) -> nn.Module:
     """A copy of the actor moved to theta^k = theta + alpha * grad_theta J_k (Eq. 4)."""
     params = list(policy.actor.parameters())
-    grads = th.autograd.grad(loop_objective(policy, policy.actor, batch, ent_coef, k, z[k]), params)
-    actor_k = copy.deepcopy(policy.actor)
+    grads = th.autograd.grad(loop_objective(policy, policy.actor.net, batch, ent_coef, k, z[k]), params)
+    actor_k = copy.deepcopy(policy.actor.net)
     with th.no_grad():
         for param, g in zip(actor_k.parameters(), grads):
             param.add_(step_size * g)
@@ -157,7 +157,7 @@ def loop_transfer(policy, batch, ent_coef, step_size: float) -> tuple[th.Tensor,
     """J_i(theta) and the N x N matrix [k, i] = J_i(theta^k) - J_i(theta), with two plain loops."""
     n = policy.n_tasks
     z = [loop_embedding(policy, batch, i)[0].detach() for i in range(n)]
-    before = th.stack([loop_objective(policy, policy.actor, batch, ent_coef, i, z[i]) for i in range(n)]).detach()
+    before = th.stack([loop_objective(policy, policy.actor.net, batch, ent_coef, i, z[i]) for i in range(n)]).detach()
     matrix = th.zeros(n, n, dtype=before.dtype)
     for k in range(n):
         actor_k = stepped_actor(policy, batch, ent_coef, k, z, step_size)
@@ -171,7 +171,7 @@ def loop_task_gradients(policy, batch, ent_coef, z: list[th.Tensor], create_grap
     params = list(policy.actor.parameters())
     grads = []
     for i in range(policy.n_tasks):
-        value = loop_objective(policy, policy.actor, batch, ent_coef, i, z[i])
+        value = loop_objective(policy, policy.actor.net, batch, ent_coef, i, z[i])
         grads.append(th.cat([g.flatten() for g in th.autograd.grad(value, params, create_graph=create_graph)]))
     return grads
 
@@ -226,17 +226,17 @@ def loop_rep_gradients(
     if harmful and estimator == "virtual_step":
         rows = []
         for k in harmful:
-            j_k = loop_objective(policy, policy.actor, batch, ent_coef, k, z[k])
+            j_k = loop_objective(policy, policy.actor.net, batch, ent_coef, k, z[k])
             g_k = th.autograd.grad(j_k, theta, create_graph=True)
             theta_k = [p + step_size * g for p, g in zip(theta, g_k)]
 
             def actor_k(x, theta_k=theta_k):
-                return loop_mlp(theta_k, x, policy.actor[1])
+                return loop_mlp(theta_k, x, policy.actor.net[1])
 
             rows.append(sum(loop_objective(policy, actor_k, batch, ent_coef, i, z[i]) for i in range(n)) / n)
         j_nt = sum(rows) / len(rows)
     elif harmful:
-        values = [loop_objective(policy, policy.actor, batch, ent_coef, i, z[i]) for i in range(n)]
+        values = [loop_objective(policy, policy.actor.net, batch, ent_coef, i, z[i]) for i in range(n)]
         grads = loop_task_gradients(policy, batch, ent_coef, z, create_graph=True)
         mean_grad = sum(grads) / n
         harmful_grad = sum(grads[k] for k in harmful) / len(harmful)

@@ -73,8 +73,8 @@ def check_consistent(samples: MultiTaskReplayBufferSamples) -> None:
     """Every row's fields belong to the same stored transition."""
     obs, next_obs = samples.observations.numpy(), samples.next_observations.numpy()
     np.testing.assert_array_equal(next_obs, obs + np.array([0, 1, 0], dtype=np.float32))
-    np.testing.assert_allclose(samples.actions.numpy()[:, 0], obs[:, 0] / 10, rtol=1e-6)
-    np.testing.assert_allclose(samples.actions.numpy()[:, 1], obs[:, 1] / 1000, rtol=1e-6)
+    np.testing.assert_allclose(samples.actions.numpy()[..., 0], obs[..., 0] / 10, rtol=1e-6)
+    np.testing.assert_allclose(samples.actions.numpy()[..., 1], obs[..., 1] / 1000, rtol=1e-6)
 
 
 # ---------------------------------------------------------------------------------------------- balanced sampling
@@ -96,24 +96,22 @@ def test_balanced_task_major_sampling(n_steps):
     np.random.seed(0)
     s = buf.sample(L)
     assert isinstance(s, MultiTaskReplayBufferSamples)
-    assert s.observations.shape == (n_tasks * L, 3) and s.next_observations.shape == (n_tasks * L, 3)
-    assert s.actions.shape == (n_tasks * L, 2)
-    assert s.rewards.shape == (n_tasks * L, 1) and s.dones.shape == (n_tasks * L, 1)
-    assert s.task_ids.dtype == th.long and s.discounts is None
-    np.testing.assert_array_equal(s.task_ids.numpy(), np.repeat(np.arange(n_tasks), L))
-    for i in range(n_tasks):
-        np.testing.assert_array_equal(s.observations[i * L : (i + 1) * L, 0].numpy(), i)
-    np.testing.assert_array_equal(s.observations[:, 0].numpy(), s.task_ids.numpy())
+    assert s.observations.shape == (n_tasks, L, 3) and s.next_observations.shape == (n_tasks, L, 3)
+    assert s.actions.shape == (n_tasks, L, 2)
+    assert s.rewards.shape == (n_tasks, L) and s.dones.shape == (n_tasks, L)
+    assert s._fields == ("observations", "actions", "next_observations", "dones", "rewards")
+    # Task-major: index [i] is task i's mini-batch (the first state entry is the task index).
+    np.testing.assert_array_equal(s.observations[..., 0].numpy(), np.repeat(np.arange(n_tasks)[:, None], L, axis=1))
     check_consistent(s)
     np.testing.assert_array_equal(
-        s.rewards[:, 0].numpy(), 100 * s.observations[:, 0].numpy() + s.observations[:, 1].numpy()
+        s.rewards.numpy(), 100 * s.observations[..., 0].numpy() + s.observations[..., 1].numpy()
     )
 
     # Reproducible with a seeded numpy RNG (and SB3's set_random_seed).
     np.random.seed(0)
     again = buf.sample(L)
     for a, b in zip(s, again, strict=True):
-        assert (a is None and b is None) or th.equal(a, b)
+        assert th.equal(a, b)
     set_random_seed(3)
     a = buf.sample(L)
     set_random_seed(3)
@@ -121,7 +119,7 @@ def test_balanced_task_major_sampling(n_steps):
 
     # Uniform over exactly the live transitions of each column: the most recent min(n_steps, rows) steps.
     big = buf.sample(2000)
-    steps = big.observations[:, 1].numpy().reshape(n_tasks, 2000)
+    steps = big.observations[..., 1].numpy()
     live = set(range(max(0, n_steps - rows), n_steps))
     for i in range(n_tasks):
         assert set(steps[i].astype(int)) == live
@@ -136,12 +134,12 @@ def test_timeout_handling():
     buf = make_buffer(2, 1)
     feed(buf, streams)
     np.testing.assert_array_equal(buf.dones[0], [1, 1])  # the truncated step is stored as done
-    np.testing.assert_array_equal(buf.sample(4).dones[:, 0].numpy(), [0] * 4 + [1] * 4)
+    np.testing.assert_array_equal(buf.sample(4).dones.numpy(), [[0] * 4, [1] * 4])
     np.testing.assert_array_equal(buf.episode_returns(0), [1.0])
 
     no_handling = make_buffer(2, 1, handle_timeout_termination=False)
     feed(no_handling, streams)
-    np.testing.assert_array_equal(no_handling.sample(4).dones[:, 0].numpy(), [1] * 8)
+    np.testing.assert_array_equal(no_handling.sample(4).dones.numpy(), [[1] * 4] * 2)
 
 
 # ---------------------------------------------------------------------------------------------- episode tracking
@@ -164,7 +162,7 @@ def test_episode_tracking():
     # K = 0 disables the store; sample_top_k falls back to the main buffer.
     np.testing.assert_array_equal(buf.n_top_k_episodes, [0, 0, 0])
     s = buf.sample_top_k(4)
-    np.testing.assert_array_equal(s.observations[:, 0].numpy(), np.repeat([0, 1, 2], 4))
+    np.testing.assert_array_equal(s.observations[..., 0].numpy(), np.repeat([[0], [1], [2]], 4, axis=1))
 
     bounded = make_buffer(3, 20, max_episode_history=2)
     feed(bounded, [make_stream(ep, T) for ep in episodes])
@@ -238,10 +236,9 @@ def test_sample_top_k():
     L = 3000
     np.random.seed(1)
     s = buf.sample_top_k(L)
-    assert s.observations.shape == (3 * L, 3) and s.rewards.shape == (3 * L, 1)
-    np.testing.assert_array_equal(s.task_ids.numpy(), np.repeat([0, 1, 2], L))
+    assert s.observations.shape == (3, L, 3) and s.rewards.shape == (3, L)
     check_consistent(s)
-    obs = s.observations.numpy().reshape(3, L, 3)
+    obs = s.observations.numpy()
     np.testing.assert_array_equal(obs[..., 0], np.broadcast_to(np.arange(3)[:, None], (3, L)))
     # Only (and all of) the stored transitions of tasks 0 and 1.
     for task in (0, 1):
@@ -250,7 +247,7 @@ def test_sample_top_k():
     # Task 2 has no complete episode: its whole main-buffer column.
     assert set(obs[2, :, 1].astype(int)) == set(range(TOPK_T))
     # The truncated episode's last step is not a terminal; the others' are.
-    dones = s.dones.numpy().reshape(3, L)
+    dones = s.dones.numpy()
     last_of_ep = {(0, 5): 0.0, (0, 7): 1.0, (0, 4): 1.0}
     for (task, ep), expected in last_of_ep.items():
         e = next(e for e in buf.top_k_episodes(task) if e["episode_id"] == ep)
@@ -302,7 +299,7 @@ def test_pickle_round_trip(tmp_path):
         np.random.seed(7)
         y = getattr(loaded, method)(16)
         for a, b in zip(x, y, strict=True):
-            assert (a is None and b is None) or th.equal(a, b)
+            assert th.equal(a, b)
 
     # Both go on identically: more episodes for task 2 (return 20 enters its store).
     more = [make_stream([[1.0]], 3), make_stream([[2.0] * 4], 6), make_stream([[20.0]], 2)]
@@ -315,6 +312,7 @@ def test_pickle_round_trip(tmp_path):
 
 # ---------------------------------------------------------------------------------------------- built by SB3
 def test_built_by_sb3_sac():
+    """SB3 builds and fills the buffer (its ``train`` expects flat batches, so no update runs here)."""
     n_tasks, ep_len, n_vec_steps = 3, 50, 200
     env = DummyVecEnv([lambda: Monitor(gym.make("Pendulum-v1", max_episode_steps=ep_len)) for _ in range(n_tasks)])
     model = SAC(
@@ -323,7 +321,7 @@ def test_built_by_sb3_sac():
         replay_buffer_class=MultiTaskReplayBuffer,
         replay_buffer_kwargs={"top_k": 2},
         batch_size=8,
-        learning_starts=50,
+        learning_starts=n_tasks * n_vec_steps,
         policy_kwargs={"net_arch": [16, 16]},
         seed=0,
         device="cpu",
@@ -345,5 +343,5 @@ def test_built_by_sb3_sac():
             assert e["timeouts"][-1] == 1 and e["timeouts"][:-1].sum() == 0  # truncated at the time limit
             np.testing.assert_allclose(e["rewards"].sum(), e["return"], rtol=1e-5)
     s = buf.sample(8)
-    assert s.observations.shape == (n_tasks * 8, 3)
-    assert buf.sample_top_k(8).rewards.shape == (n_tasks * 8, 1)
+    assert s.observations.shape == (n_tasks, 8, 3)
+    assert buf.sample_top_k(8).rewards.shape == (n_tasks, 8)

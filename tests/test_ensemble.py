@@ -65,7 +65,7 @@ def test_multitask_critic_equals_loop_over_tasks(critic_arch):
     critic = MultiTaskCritic(state_dim, action_dim, n, [8, 8], critic_arch=critic_arch)
     obs = th.cat([th.randn(n * length, state_dim), th.eye(n).repeat_interleave(length, 0)], dim=1)
     actions = th.randn(n * length, action_dim)
-    q = critic(obs, actions)
+    q = critic(obs.view(n, length, -1), actions.view(n, length, -1))
     assert q.shape == (2, n, length)
     for i in range(n):
         rows = slice(i * length, (i + 1) * length)
@@ -79,16 +79,18 @@ def test_multitask_critic_equals_loop_over_tasks(critic_arch):
 
 @pytest.mark.parametrize("actor_class", [SharedActor, MultiHeadActor, IndependentActor, SoftModularActor])
 def test_task_major_path_equals_gather_path(actor_class):
-    """Training (task-major reshape + bmm) and acting (per-row gather) compute the same distribution."""
+    """Training (task-major bmm) and acting (per-row gather) compute the same distribution."""
     th.manual_seed(3)
     n, state_dim, length = 4, 6, 5
     actor = actor_class(state_dim, 2, n, [16, 16], nn.ReLU)
     task_ids = th.arange(n).repeat_interleave(length)
     obs = th.cat([th.randn(n * length, state_dim), th.eye(n)[task_ids]], dim=1)
-    batched = actor.dist_params(obs)
+    batched = actor.dist_params(obs.view(n, length, -1)).view(n * length, -1)
     permutation = th.randperm(n * length)
     gathered = actor.dist_params(obs[permutation], task_ids[permutation])
     assert th.allclose(batched[permutation], gathered, atol=1e-5)
+    # Acting reads the tasks from the one-hot: its deterministic action is tanh of the task-major mean.
+    assert th.allclose(actor.act(obs[permutation], deterministic=True), th.tanh(batched[permutation, :2]), atol=1e-5)
 
 
 def test_independent_actor_equals_separate_networks():
@@ -96,7 +98,7 @@ def test_independent_actor_equals_separate_networks():
     n, state_dim, length = 3, 5, 4
     actor = IndependentActor(state_dim, 2, n, [8, 8], nn.ReLU)
     obs = th.cat([th.randn(n * length, state_dim), th.eye(n).repeat_interleave(length, 0)], dim=1)
-    out = actor.dist_params(obs).view(n, length, -1)
+    out = actor.dist_params(obs.view(n, length, -1))
     for i in range(n):
         expected = member_as_mlp(actor.nets, i)(obs[i * length : (i + 1) * length, :state_dim])
         assert th.allclose(out[i], expected, atol=1e-5)
@@ -107,7 +109,7 @@ def test_multi_head_actor_equals_trunk_plus_separate_heads():
     n, state_dim, length = 3, 5, 4
     actor = MultiHeadActor(state_dim, 2, n, [8, 8], nn.ReLU)
     obs = th.cat([th.randn(n * length, state_dim), th.eye(n).repeat_interleave(length, 0)], dim=1)
-    out = actor.dist_params(obs).view(n, length, -1)
+    out = actor.dist_params(obs.view(n, length, -1))
     for i in range(n):
         latent = actor.trunk(obs[i * length : (i + 1) * length])
         assert th.allclose(out[i], member_as_linear(actor.heads, i)(latent), atol=1e-5)

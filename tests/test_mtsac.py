@@ -1,29 +1,94 @@
 """MTSAC family: losses (Eq. 15-16), per-task temperatures, save/load/resume, reproducibility, bad input,
 learning on the toy env and an MT10 smoke run of every variant."""
 
+import copy
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 import torch as th
+from conftest import fixed_randn_like, loop_log_prob, loop_q, loop_split
 from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_mtte import MTSAC, MTSACTE, evaluate_success, make_mt_env
-from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss, per_task_entropy_loss
+from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 
 POLICIES = ["MlpPolicy", "MultiHeadPolicy", "SoftModularPolicy", "IndependentPolicy"]
 SMALL = dict(net_arch=[32, 32])
 
 
-def small_model(policy="MlpPolicy", seed=0, env=None, **kwargs):
+def small_model(policy="MlpPolicy", seed=0, env=None, cls=MTSAC, **kwargs):
     env = env or make_mt_env("toy-conflict", seed=seed)
     kwargs.setdefault("policy_kwargs", SMALL)
     if policy == "SoftModularPolicy":
-        kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], "actor_kwargs": dict(n_layers=2, n_modules=2, module_size=16)}
-    return MTSAC(policy, env, learning_starts=100, batch_size=16, seed=seed, **kwargs)
+        kwargs["policy_kwargs"] = {
+            **kwargs["policy_kwargs"],
+            "actor_kwargs": dict(n_layers=2, n_modules=2, module_size=16),
+        }
+    return cls(policy, env, learning_starts=100, batch_size=16, seed=seed, **kwargs)
 
 
 def all_params(model):
     return {k: v.detach().clone() for k, v in model.policy.state_dict().items()}
+
+
+class FirstTaskOnlyMTSAC(MTSAC):
+    """A gradient-level method written as one override of the actor step: it records what the step receives and
+    trains the actor on task 0's loss alone."""
+
+    def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
+        self.received = {
+            "losses": task_losses.detach().clone(),
+            "weights": task_weights.clone(),
+            "actor": copy.deepcopy(self.actor),
+            "critic": copy.deepcopy(self.critic),
+        }
+        loss = super()._actor_step(task_losses, th.eye(self.n_tasks, dtype=task_weights.dtype)[0])
+        self.received["grads"] = [p.grad.detach().clone() for p in self.actor.parameters()]
+        return loss
+
+
+def test_actor_step_hook_receives_the_per_task_losses_and_changes_the_update(monkeypatch):
+    """The actor step gets the (N,) losses -J_SAC,i of a plain per-task loop and the (N,) weights w; overriding it
+    changes the update (here: task 0 alone), and the model still trains."""
+    model = small_model(cls=FirstTaskOnlyMTSAC, policy_kwargs={"net_arch": [16, 16]})
+    before = all_params(model)
+    model.learn(200)
+    assert model._n_updates > 0 and all(th.isfinite(v).all() for v in all_params(model).values())
+    assert any(not th.equal(before[k], v) for k, v in all_params(model).items() if k.startswith("actor."))
+
+    monkeypatch.setattr(model.ent_coef_optimizer, "step", lambda *args, **kwargs: None)  # beta_i fixed
+    beta, draw, captured = model.entropy_coefficients.clone(), fixed_randn_like(monkeypatch), {}
+    original_sample = model.replay_buffer.sample
+
+    def sample(*args, **kwargs):
+        captured["batch"] = original_sample(*args, **kwargs)
+        return captured["batch"]
+
+    monkeypatch.setattr(model.replay_buffer, "sample", sample)
+    model.train(1, 16)
+    received, obs = model.received, captured["batch"].observations
+    noise = draw((*obs.shape[:2], model.policy.action_dim), obs.dtype)
+    critics, c = SimpleNamespace(critic=received["critic"]), model.critic.n_critics
+
+    def reference_loss(task: int) -> th.Tensor:
+        mean, log_std = loop_split(received["actor"].net(obs[task]))
+        action, log_prob = loop_log_prob(mean, log_std, noise[task])
+        x = th.cat([obs[task][:, : model.policy.state_dim], action], dim=-1)
+        min_q = th.stack([loop_q(critics, task * c + j, x) for j in range(c)]).min(dim=0).values
+        return (beta[task] * log_prob - min_q).mean()
+
+    losses = [reference_loss(i) for i in range(model.n_tasks)]
+    th.testing.assert_close(received["losses"], th.stack(losses).detach(), rtol=1e-5, atol=1e-6)
+    th.testing.assert_close(received["weights"], th.full((model.n_tasks,), 1 / model.n_tasks))
+    params = list(received["actor"].parameters())
+    task_0 = th.autograd.grad(losses[0], params, retain_graph=True)
+    for applied, expected in zip(received["grads"], task_0):
+        th.testing.assert_close(applied, expected, rtol=1e-4, atol=1e-6)
+    weighted = th.autograd.grad(sum(losses) / model.n_tasks, params)
+    flat = th.cat([g.flatten() for g in task_0])
+    assert (th.cat([g.flatten() for g in weighted]) - flat).norm() > 0.1 * flat.norm()
 
 
 # ------------------------------------------------------------------------------------------------ Eq. 15-16
@@ -59,7 +124,7 @@ def test_actor_loss_is_negative_sac_objective_per_task():
     min_q = th.tensor([[2.0, 2.0], [1.0, 5.0]])
     ent = th.tensor([0.5, 2.0])
     # task 0: mean(0.5*[1,3] - 2) = mean([-1.5, -0.5]) = -1; task 1: mean([0-1, -4-5]) = -5
-    assert th.allclose(per_task_actor_loss(log_prob, min_q, ent), th.tensor([-1.0, -5.0]))
+    assert th.allclose(-sac_task_objective(log_prob, min_q, ent), th.tensor([-1.0, -5.0]))
 
 
 def test_entropy_loss_of_task_i_moves_only_beta_i():
@@ -188,8 +253,14 @@ def test_every_variant_learns_the_toy_conflict_env(policy, critic_arch):
     if policy == "SoftModularPolicy":
         kwargs["actor_kwargs"] = dict(n_layers=2, n_modules=2, module_size=32)
     model = MTSAC(
-        policy, env, learning_starts=1000, batch_size=64, learning_rate=1e-3, critic_arch=critic_arch,
-        policy_kwargs=kwargs, seed=0,
+        policy,
+        env,
+        learning_starts=1000,
+        batch_size=64,
+        learning_rate=1e-3,
+        critic_arch=critic_arch,
+        policy_kwargs=kwargs,
+        seed=0,
     )
     model.learn(12_000)
     result = evaluate_success(model, make_mt_env("toy-conflict", seed=100), episodes_per_task=10)
@@ -202,4 +273,4 @@ def test_mt10_smoke_run(policy):
     model = MTSAC(policy, env, learning_starts=100, batch_size=16, buffer_size=20_000, seed=0, q_loss_clip=2000.0)
     model.learn(300)
     assert model.num_timesteps == 300 and model._n_updates >= 15
-    assert model.replay_buffer.sample(4).observations.shape == (40, 49)
+    assert model.replay_buffer.sample(4).observations.shape == (10, 4, 49)

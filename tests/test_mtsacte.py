@@ -22,6 +22,7 @@ from conftest import (
     small_model_kwargs,
 )
 from stable_baselines3.common.logger import Logger
+from stable_baselines3.common.save_util import load_from_zip_file
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sb3_mtte.mtsacte.mtsacte as mtsacte_module
@@ -52,12 +53,12 @@ def test_attributes_after_recomputation(toy_env):
         matrix = model.transfer_matrix
         assert matrix.shape == (N_TASKS, N_TASKS) and model.mu.shape == (N_TASKS,)
         mu = [sum(1 for i in range(N_TASKS) if matrix[k, i] < 0) for k in range(N_TASKS)]
-        assert model.mu.tolist() == mu and np.issubdtype(model.mu.dtype, np.integer)
-        assert model.selected_tasks.dtype == np.bool_
+        assert model.mu.tolist() == mu and model.mu.dtype == th.long
+        assert model.selected_tasks.dtype == th.bool
         assert set(np.flatnonzero(model.selected_tasks).tolist()) == kappa_benign_set(mu, 3)
         numerators = [math.exp(N_TASKS - m) for m in mu]
         np.testing.assert_allclose(model.task_weights, [v / sum(numerators) for v in numerators], rtol=1e-6)
-        assert model.task_weights.dtype == np.float32
+        assert model.task_weights.dtype == th.float32
         np.testing.assert_array_equal(model.task_weights_for_policy().numpy(), model.task_weights)
         seen_mu.add(tuple(mu))
     assert len(seen_mu) > 1  # not one constant answer
@@ -78,7 +79,7 @@ def test_representation_schedule(toy_env, monkeypatch):
 
     def update_representation(batch_size):
         original_update(batch_size)
-        calls.append((model.num_timesteps // N_TASKS, model.task_weights.copy()))
+        calls.append((model.num_timesteps // N_TASKS, model.task_weights.clone()))
 
     original_weights = model.task_weights_for_policy
 
@@ -223,7 +224,7 @@ def test_top_k_store_holds_the_k_best_episodes(tmp_path):
     batch = other.replay_buffer.sample_top_k(16)
     for task in range(n_tasks):
         best_ids = {int(e["observations"][0, 2]) for e in buffer.top_k_episodes(task)}
-        rows = batch.observations[task * 16 : (task + 1) * 16].numpy()
+        rows = batch.observations[task].numpy()
         assert np.all(rows[:, 0] == task) and {int(v) for v in rows[:, 2]} <= best_ids
 
 
@@ -239,10 +240,10 @@ def _optimizers(model) -> dict:
 
 def _nt_state(model) -> dict:
     return {
-        "mu": model.mu.copy(),
-        "selected": model.selected_tasks.copy(),
-        "weights": model.task_weights.copy(),
-        "transfer": model.transfer_matrix.copy(),
+        "mu": model.mu.clone(),
+        "selected": model.selected_tasks.clone(),
+        "weights": model.task_weights.clone(),
+        "transfer": model.transfer_matrix.clone(),
     }
 
 
@@ -297,6 +298,22 @@ def test_load_without_env_predicts(tmp_path):
     loaded = MTSACTE.load(tmp_path / "model.zip", device="cpu")
     assert loaded.replay_buffer is None
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], expected)
+
+
+def test_checkpoint_stores_the_task_selection_as_numpy(tmp_path):
+    """mu, C_s, w and the transfer matrix go into the checkpoint as numpy arrays (so a model saved on a GPU loads
+    on a CPU) and come back as tensors of the same dtype on the loading model's device, still equal."""
+    model = MTSACTE("MlpPolicy", make_mt_env("toy-conflict", seed=0), **small_model_kwargs())
+    model.learn(120)
+    model.save(tmp_path / "model.zip")
+    data, _, _ = load_from_zip_file(tmp_path / "model.zip", device="cpu")
+    loaded = MTSACTE.load(tmp_path / "model.zip", device="cpu")
+    for name in ("mu", "selected_tasks", "task_weights", "transfer_matrix"):
+        assert isinstance(data[name], np.ndarray), name
+        saved, restored = getattr(model, name), getattr(loaded, name)
+        assert isinstance(restored, th.Tensor) and restored.device.type == "cpu", name
+        assert restored.dtype == saved.dtype and th.equal(restored, saved), name
+    assert isinstance(model.mu, th.Tensor)  # the saving model keeps its tensors
 
 
 # ========================================================================================================= bad input
@@ -521,14 +538,14 @@ def test_training_singles_out_the_conflicting_task(seed, monkeypatch):
         device="cpu",
     )
     mus, weights = [], []
-    original_store = model._store_negative_transfer
+    original_store = model._set_selection
 
     def store(*args):
         original_store(*args)
-        mus.append(model.mu.copy())
-        weights.append(model.task_weights.copy())
+        mus.append(model.mu.numpy().copy())
+        weights.append(model.task_weights.numpy().copy())
 
-    monkeypatch.setattr(model, "_store_negative_transfer", store)
+    monkeypatch.setattr(model, "_set_selection", store)
     model.learn(4000)
     assert len(mus) == 19 * 10
     mean_mu, mean_weights = np.mean(mus, axis=0), np.mean(weights, axis=0)

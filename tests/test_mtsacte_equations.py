@@ -247,7 +247,7 @@ def loop_first_order_nt_objective(policy, batch, ent_coef, harmful: list[int], s
     params = list(policy.actor.parameters())
     values, grads = [], []
     for i in range(n):
-        value = loop_objective(policy, policy.actor, batch, ent_coef, i, z[i])
+        value = loop_objective(policy, policy.actor.net, batch, ent_coef, i, z[i])
         values.append(float(value.detach()))
         grads.append(th.cat([g.flatten() for g in th.autograd.grad(value, params)]))
     mean_grad = th.stack(grads).mean(0)
@@ -453,14 +453,14 @@ def test_soft_q_target_on_a_hand_computed_batch(toy_env, monkeypatch):
         model.log_ent_coef.copy_(th.log(th.tensor(beta)))
     policy = model.policy
     monkeypatch.setattr(
-        policy.encoder, "forward", lambda obs: th.cat([obs[:, :3], th.full_like(obs[:, :3], math.log(0.5))], dim=1)
+        policy.encoder, "forward", lambda obs: th.cat([obs[..., :3], th.full_like(obs[..., :3], math.log(0.5))], -1)
     )
     monkeypatch.setattr(
-        policy.actor, "forward", lambda x: th.cat([x[:, 4:6], th.full_like(x[:, 4:6], math.log(0.2))], 1)
+        policy.actor.net, "forward", lambda x: th.cat([x[..., 4:6], th.full_like(x[..., 4:6], math.log(0.2))], -1)
     )
 
     def target_twins(obs, actions):
-        a0 = actions[:, 0].view(N_TASKS, -1)
+        a0 = actions[..., 0]
         return th.stack([th.tensor(twin_0)[:, None] + a0, th.tensor(twin_1)[:, None] + a0])
 
     monkeypatch.setattr(policy.critic_target, "forward", target_twins)
@@ -513,14 +513,16 @@ def test_q_loss_clip_is_per_sample(toy_env, monkeypatch):
     batch_size = 8
     model.train(1, batch_size)
 
-    data, members = captured["batch"], reference.n_critics
+    members = reference.n_critics
+    data = captured["batch"]  # task-major (N, L, ...): flattened to rows for the loop
+    observations, actions, rewards = (x.flatten(0, 1) for x in (data.observations, data.actions, data.rewards))
     losses = []  # per task and twin: the L per-sample 1/2 (Q(s, a) - r)^2
     for task in range(N_TASKS):
         rows = range(task * batch_size, (task + 1) * batch_size)
-        inputs = [th.cat([data.observations[r, :4], data.actions[r]]) for r in rows]
+        inputs = [th.cat([observations[r, :4], actions[r]]) for r in rows]
         for twin in range(members):
             q = th.stack([loop_q(reference, task * members + twin, x) for x in inputs])
-            losses.append(0.5 * (q - data.rewards[rows.start : rows.stop, 0]) ** 2)
+            losses.append(0.5 * (q - rewards[rows.start : rows.stop]) ** 2)
     values = th.cat(losses).detach()
     assert (values - clip).abs().min() > 0.5
     assert (values > clip).sum() >= 8 and (values < clip).sum() >= 8  # both regimes
@@ -545,7 +547,7 @@ def test_stochastic_predict_samples_z_from_the_encoder(toy_env, monkeypatch):
     with th.no_grad():  # an encoder std far from 1 and different per dimension
         policy.encoder[-1].bias[policy.z_dim :] = th.tensor([-1.0, 0.0, 0.5])
     fed: list[th.Tensor] = []
-    policy.actor.register_forward_pre_hook(lambda module, args: fed.append(args[0][:, policy.state_dim :].detach()))
+    policy.actor.net.register_forward_pre_hook(lambda module, args: fed.append(args[0][:, policy.state_dim :].detach()))
     obs = np.repeat(toy_env.reset(), 1000, axis=0)  # task-major: 1000 copies of each task's start observation
     first = model.predict(obs, deterministic=False)[0]
     second = model.predict(obs, deterministic=False)[0]
@@ -568,7 +570,7 @@ def test_deterministic_predict_uses_the_mean_z_and_action(toy_env):
     with th.no_grad():
         x = th.as_tensor(obs)
         mean_z, _ = loop_split(policy.encoder(x))
-        mean_a, _ = loop_split(policy.actor(th.cat([x[:, : policy.state_dim], mean_z], dim=1)))
+        mean_a, _ = loop_split(policy.actor.net(th.cat([x[:, : policy.state_dim], mean_z], dim=1)))
     actions = model.predict(obs, deterministic=True)[0]
     np.testing.assert_allclose(actions, th.tanh(mean_a).numpy(), rtol=1e-6, atol=1e-7)
     np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], actions)
@@ -598,7 +600,7 @@ def test_collected_actions_use_a_sampled_z(toy_env, monkeypatch):
 
     monkeypatch.setattr(model, "collect_rollouts", collect_rollouts)
     policy.encoder.register_forward_hook(record_encoder)
-    policy.actor.register_forward_pre_hook(record_actor)
+    policy.actor.net.register_forward_pre_hook(record_actor)
     model.learn(600)
     assert len(pairs) == 600 // N_TASKS - 40 // N_TASKS  # one policy action per vector step after learning_starts
     eps = []

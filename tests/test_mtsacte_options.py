@@ -13,9 +13,10 @@ from stable_baselines3.common.logger import configure
 
 import sb3_mtte.mtsacte.mtsacte as mtsacte_module
 from sb3_mtte import MTSACTE, make_mt_env
-from sb3_mtte.mtsacte.objectives import task_weights
+from sb3_mtte.mtsacte import NegativeTransferLogCallback
+from sb3_mtte.mtsacte.objectives import significant_negative_transfer_measure, task_weights
 from sb3_mtte.mtsacte.probe import task_probe_accuracy
-from sb3_mtte.mtsacte.transfer import TransferStatistics, significant_negative_transfer_measure
+from sb3_mtte.mtsacte.transfer import TransferStatistics
 
 N_TASKS = 4
 
@@ -84,7 +85,7 @@ def test_task_weights_follow_the_given_dtype():
 def test_model_task_weights_in_the_model_dtype(toy_env):
     model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
     model.learn(60 * N_TASKS)
-    assert model.task_weights.dtype == np.float32
+    assert model.task_weights.dtype == th.float32
     assert model.task_weights_for_policy().dtype == next(model.actor.parameters()).dtype
 
 
@@ -167,6 +168,37 @@ def test_model_records_the_probe(toy_env, tmp_path):
     assert records and records[-1]["task_probe_accuracy"] == model.task_probe_accuracy
     assert records[-1]["task_probe_accuracy_of_mean"] == model.task_probe_accuracy_of_mean
     assert records[-1]["z_std"] == model.z_std
+
+
+def test_negative_transfer_log_is_written_by_its_callback(toy_env, tmp_path, monkeypatch):
+    """learn() attaches the callback: one line per iteration (its last C_s and w), in the record format
+    the tools read. update_representation only queues the record; the callback writes it."""
+    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    calls = []
+    original_update = model.update_representation
+
+    def update_representation(batch_size):
+        original_update(batch_size)
+        calls.append(model.num_timesteps)
+
+    monkeypatch.setattr(model, "update_representation", update_representation)
+    model.learn(60 * N_TASKS)
+    path = tmp_path / "negative_transfer.jsonl"
+    records = [json.loads(line) for line in path.read_text().splitlines()]
+    assert [r["timesteps"] for r in records] == calls and len(calls) > 1 and not model.negative_transfer_records
+    keys = {"timesteps", "mu", "selected", "weights", "transfer_matrix", "task_probe_accuracy"}
+    assert set(records[0]) == keys | {"task_probe_accuracy_of_mean", "z_std"}
+    original_update(8)
+    assert len(path.read_text().splitlines()) == len(records) and len(model.negative_transfer_records) == 1
+    callback = NegativeTransferLogCallback()
+    callback.init_callback(model)
+    callback.on_training_end()
+    last = json.loads(path.read_text().splitlines()[-1])
+    assert len(path.read_text().splitlines()) == len(records) + 1 and not model.negative_transfer_records
+    assert last["mu"] == model.mu.tolist() and last["weights"] == model.task_weights.tolist()
+    assert last["selected"] == model.selected_tasks.int().tolist()
+    assert last["transfer_matrix"] == model.transfer_matrix.double().tolist()
 
 
 def test_probe_and_z_std_read_the_last_batch_before_its_update(toy_env, monkeypatch):

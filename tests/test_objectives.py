@@ -7,7 +7,6 @@ import copy
 import itertools
 import math
 
-import numpy as np
 import pytest
 import torch as th
 from conftest import (
@@ -21,13 +20,12 @@ from conftest import (
 )
 
 from sb3_mtte import MTSACTE, make_mt_env
-from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss
+from sb3_mtte.common.losses import clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     gaussian_kl_to_standard_normal,
     negative_transfer_measure,
     negative_transfer_objective,
     representation_objective,
-    sac_task_objective,
     select_benign_tasks,
     task_weights,
     vae_objective,
@@ -69,7 +67,7 @@ def test_sac_task_objective_leading_dims_and_actor_loss():
     for k, i in itertools.product(range(4), range(3)):
         expected = -(ent_coef[i] * log_prob[k, i] - min_q[k, i]).mean()
         th.testing.assert_close(objective[k, i], expected)
-        th.testing.assert_close(per_task_actor_loss(log_prob[k], min_q[k], ent_coef)[i], -expected)
+        th.testing.assert_close(-sac_task_objective(log_prob[k], min_q[k], ent_coef)[i], -expected)
 
 
 # ------------------------------------------------------------------------------------- virtual step (Eq. 4)
@@ -228,7 +226,7 @@ def test_actor_loss_is_the_weighted_sum_of_task_losses(monkeypatch):
     model.learn(200)
     disable_representation_updates(model, monkeypatch)
     weights = [0.1, 0.2, 0.3, 0.4]
-    model.task_weights = np.array(weights, dtype=np.float32)
+    model.task_weights = th.tensor(weights, dtype=th.float32)
     with th.no_grad():
         model.log_ent_coef.copy_(th.log(th.tensor([0.02, 0.05, 0.1, 0.2])))
     beta = model.entropy_coefficients.clone()
@@ -247,11 +245,11 @@ def test_actor_loss_is_the_weighted_sum_of_task_losses(monkeypatch):
 
     monkeypatch.setattr(model.replay_buffer, "sample", sample)
     monkeypatch.setattr(model.actor.optimizer, "step", step)
-    actor_before = copy.deepcopy(model.actor)
+    actor_before = copy.deepcopy(model.actor.net)
     batch_size = 8
     model.train(1, batch_size)
 
-    policy, obs = model.policy, captured["batch"].observations
+    policy, obs = model.policy, captured["batch"].observations.flatten(0, 1)  # task-major rows
     n_rows, state_dim = obs.shape[0], policy.state_dim
     z_noise, action_noise = draw((n_rows, policy.z_dim), obs.dtype), draw((n_rows, policy.action_dim), obs.dtype)
 

@@ -39,7 +39,7 @@ def test_single_task_trains_saves_loads_and_evaluates(policy, tmp_path):
     model = one_task_model(policy)
     model.learn(300)
     assert model.n_tasks == 1 and model.entropy_coefficients.shape == (1,)
-    assert model.replay_buffer.sample(8).observations.shape == (8, 5)  # 4-d state + [1.0]
+    assert model.replay_buffer.sample(8).observations.shape == (1, 8, 5)  # 4-d state + [1.0]
     model.save(tmp_path / "model")
     loaded = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-agree-1", seed=1))
     assert loaded.n_tasks == 1 and loaded.task_names == ["agree-0"]

@@ -5,7 +5,7 @@ The VecEnv holds one sub-env per task (sub-env i is task i), so SB3's ``ReplayBu
 keeps that layout and changes three things:
 
 * :meth:`MultiTaskReplayBuffer.sample` draws ``L = batch_size`` transitions *per task* and returns them
-  task-major (task 0's L rows, then task 1's, ...), so per-task losses are a reshape to ``(N, L, ...)``.
+  task-major, as ``(N, L, ...)`` tensors whose index ``[i]`` is task i's mini-batch.
 * :meth:`MultiTaskReplayBuffer.add` tracks the undiscounted return of every episode of every task.
 * Per task, the K highest-return complete episodes are copied into a side store that
   :meth:`MultiTaskReplayBuffer.sample_top_k` samples from (top-K replay). The store lives in the buffer
@@ -30,10 +30,13 @@ _FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "
 
 
 class MultiTaskReplayBufferSamples(NamedTuple):
-    """A task-major batch: rows ``i * L:(i + 1) * L`` belong to task ``i``.
+    """A task-major batch: index ``[i]`` of every field is task i's L transitions.
 
-    Same fields as SB3's ``ReplayBufferSamples`` (read them by name) plus ``task_ids``, the task index
-    of every row (``torch.long``, shape ``(N * L,)``).
+    :param observations: ``(N, L, obs_dim)``
+    :param actions: ``(N, L, action_dim)``
+    :param next_observations: ``(N, L, obs_dim)``
+    :param dones: ``(N, L)``, 1 at a termination (a time-limit truncation is not one when timeouts are handled)
+    :param rewards: ``(N, L)``
     """
 
     observations: th.Tensor
@@ -41,8 +44,6 @@ class MultiTaskReplayBufferSamples(NamedTuple):
     next_observations: th.Tensor
     dones: th.Tensor
     rewards: th.Tensor
-    task_ids: th.Tensor
-    discounts: th.Tensor | None = None
 
 
 @dataclass
@@ -74,7 +75,8 @@ class MultiTaskReplayBuffer(ReplayBuffer):
     """Replay buffer for N tasks with balanced task-major sampling and a per-task top-K episode store.
 
     Build it with ``n_envs`` equal to the number of tasks, sub-env i being task i (SB3 does this when it
-    is passed as ``replay_buffer_class``). ``buffer_size`` is the total over tasks, as in SB3: each task
+    is passed as ``replay_buffer_class``; SB3's own ``train`` methods expect flat batches, so train with
+    :class:`~sb3_mtte.MTSAC` or :class:`~sb3_mtte.MTSACTE`). ``buffer_size`` is the total over tasks, as in SB3: each task
     gets ``buffer_size // n_envs`` rows.
 
     Top-K store: when an episode of task i ends (termination or truncation, a truncated episode counts as
@@ -240,20 +242,18 @@ class MultiTaskReplayBuffer(ReplayBuffer):
 
     # ------------------------------------------------------------------ sampling
     def sample(self, batch_size: int, env: VecNormalize | None = None) -> MultiTaskReplayBufferSamples:
-        """Balanced task-major sample of ``batch_size`` transitions per task (``N * batch_size`` rows).
+        """Balanced task-major sample of ``batch_size`` transitions per task.
 
         Rows are uniform in the filled part of each task's column (numpy's global RNG, as SB3).
 
         :param batch_size: L, the number of transitions per task
         :param env: VecNormalize env to normalize observations and rewards with, as in SB3
-        :return: the batch; rows ``i * L:(i + 1) * L`` come from task ``i``
+        :return: the batch, ``(N, L, ...)`` tensors
         """
         upper_bound = self.buffer_size if self.full else self.pos
         rows = np.random.randint(0, upper_bound, size=(self.n_envs, batch_size))
         cols = np.arange(self.n_envs)[:, None]
-        parts = [getattr(self, name)[rows, cols] for name in _FIELDS]
-        n = self.n_envs * batch_size
-        return self._make_samples([part.reshape(n, *part.shape[2:]) for part in parts], batch_size, env)
+        return self._make_samples([getattr(self, name)[rows, cols] for name in _FIELDS], env)
 
     def sample_top_k(self, batch_size: int, env: VecNormalize | None = None) -> MultiTaskReplayBufferSamples:
         """Task-major sample of ``batch_size`` transitions per task from the top-K store.
@@ -263,7 +263,7 @@ class MultiTaskReplayBuffer(ReplayBuffer):
 
         :param batch_size: L, the number of transitions per task
         :param env: VecNormalize env to normalize observations and rewards with, as in SB3
-        :return: the batch; rows ``i * L:(i + 1) * L`` come from task ``i``
+        :return: the batch, ``(N, L, ...)`` tensors
         """
         n_stored = self.n_top_k_transitions
         upper_bound = self.buffer_size if self.full else self.pos
@@ -276,15 +276,12 @@ class MultiTaskReplayBuffer(ReplayBuffer):
             for part, name in zip(parts, _FIELDS, strict=True):
                 source = store.data[name] if n_stored[task] > 0 else getattr(self, name)[:, task]
                 part.append(source[rows[task]])
-        return self._make_samples([np.concatenate(part) for part in parts], batch_size, env)
+        return self._make_samples([np.stack(part) for part in parts], env)
 
-    def _make_samples(
-        self, parts: list[np.ndarray], batch_size: int, env: VecNormalize | None
-    ) -> MultiTaskReplayBufferSamples:
-        """Turn flat task-major arrays (in ``_FIELDS`` order) into a batch of tensors.
+    def _make_samples(self, parts: list[np.ndarray], env: VecNormalize | None) -> MultiTaskReplayBufferSamples:
+        """Turn task-major ``(N, L, ...)`` arrays (in ``_FIELDS`` order, fresh copies) into a batch of tensors.
 
-        :param parts: observations, next observations, actions, rewards, dones, timeouts; leading dim N * L
-        :param batch_size: L
+        :param parts: observations, next observations, actions, rewards, dones, timeouts
         :param env: VecNormalize env or None
         :return: the batch
         """
@@ -293,11 +290,10 @@ class MultiTaskReplayBuffer(ReplayBuffer):
             self._normalize_obs(obs, env),
             actions,
             self._normalize_obs(next_obs, env),
-            (dones * (1 - timeouts)).reshape(-1, 1),
-            self._normalize_reward(rewards.reshape(-1, 1), env),
-            np.repeat(np.arange(self.n_envs, dtype=np.int64), batch_size),
+            dones * (1 - timeouts),
+            self._normalize_reward(rewards, env),
         )
-        return MultiTaskReplayBufferSamples(*map(self.to_torch, data))
+        return MultiTaskReplayBufferSamples(*(self.to_torch(array, copy=False) for array in data))
 
     # ------------------------------------------------------------------ introspection
     def episode_returns(self, task: int) -> np.ndarray:

@@ -44,16 +44,17 @@ class MultiTaskCritic(nn.Module):
         self.q_net = EnsembleMLP(n_members, in_dim, net_arch, 1, activation_fn)
 
     def forward(self, obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
-        """Q-values of a task-major batch (``L`` rows of task 0, then task 1, ...).
+        """Q-values of a task-major batch.
 
-        :param obs: ``(N*L, state_dim + N)`` observations.
-        :param actions: ``(N*L, action_dim)``.
+        :param obs: ``(N, L, state_dim + N)`` observations.
+        :param actions: ``(N, L, action_dim)``.
         :return: ``(n_critics, N, L)``.
         """
         n, c = self.n_tasks, self.n_critics
         if self.per_task:
-            x = th.cat([obs[:, :-n], actions], dim=1).view(n, 1, -1, obs.shape[1] - n + actions.shape[1])
-            x = x.expand(n, c, x.shape[2], x.shape[3]).reshape(n * c, x.shape[2], x.shape[3])
-            return self.q_net(x).view(n, c, -1).transpose(0, 1)
-        x = th.cat([obs, actions], dim=1).unsqueeze(0).expand(c, -1, -1)
-        return self.q_net(x).view(c, n, -1)
+            x = th.cat([obs[..., :-n], actions], dim=-1)
+            length, width = x.shape[1:]
+            x = x.unsqueeze(1).expand(n, c, length, width).reshape(n * c, length, width)
+            return self.q_net(x).view(n, c, length).transpose(0, 1)
+        x = th.cat([obs, actions], dim=-1)
+        return self.q_net(x.view(1, -1, x.shape[-1]).expand(c, -1, -1)).view(c, n, -1)

@@ -22,17 +22,18 @@ def clipped_soft_q_loss(q_values: th.Tensor, target_q: th.Tensor, clip: float | 
     return per_sample.mean(dim=-1).sum(dim=0)
 
 
-def per_task_actor_loss(log_prob: th.Tensor, min_q: th.Tensor, ent_coef: th.Tensor) -> th.Tensor:
-    """Per-task policy loss, Eq. 1: mean over task i's batch of beta_i log pi(a|s) - min_j Q_ij(s, a).
+def sac_task_objective(log_prob: th.Tensor, min_q: th.Tensor, ent_coef: th.Tensor) -> th.Tensor:
+    """J_SAC(theta, phi, T_i) of every task: Eq. 1 negated, -mean over task i's batch of (beta_i log pi - min_j Q_ij).
 
-    This is -J_SAC,i; the policy objective of Eq. 9 is sum_i w_i J_SAC,i, so the loss is sum_i w_i * this.
+    An objective to maximise; the per-task policy loss is its negative, and the policy objective of Eq. 9 is
+    sum_i w_i J_SAC,i. Training (the actor step) and the negative-transfer evaluation (Eq. 4-6, 11) both use it.
 
-    :param log_prob: ``(N, L)``.
-    :param min_q: ``(N, L)`` minimum over twin critics at the reparameterised actions.
+    :param log_prob: ``(..., N, L)`` log pi(a|s) of reparameterised actions.
+    :param min_q: ``(..., N, L)`` minimum over task i's twin critics at those actions.
     :param ent_coef: ``(N,)`` beta_i.
-    :return: ``(N,)``.
+    :return: ``(..., N)``.
     """
-    return (ent_coef[:, None] * log_prob - min_q).mean(dim=1)
+    return -(ent_coef[:, None] * log_prob - min_q).mean(dim=-1)
 
 
 def per_task_entropy_loss(log_ent_coef: th.Tensor, log_prob: th.Tensor, target_entropy: float) -> th.Tensor:

@@ -1,4 +1,9 @@
-"""What every multi-task policy of this package shares: its sizes, Adam defaults, and per-task twin critics."""
+"""What every multi-task policy of this package shares: the actor interface, sizes, Adam defaults, per-task critics.
+
+Training batches are task-major ``(N, L, ...)``: L rows of task 0, then task 1, ... on a leading task axis, so
+per-task parts (heads, independent networks, critics) run as one batched matmul. Acting reads the task of each row
+from its one-hot and gathers the matching weights.
+"""
 
 from __future__ import annotations
 
@@ -11,8 +16,51 @@ from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
 from sb3_mtte.common.critics import MultiTaskCritic
+from sb3_mtte.common.distributions import squashed_gaussian, squashed_gaussian_action
+from sb3_mtte.common.utils import task_ids_from_obs
 
 DEFAULT_NET_ARCH = [400, 400]
+
+
+class MultiTaskActor(nn.Module):
+    """A tanh-squashed Gaussian policy for N tasks; subclasses implement :meth:`dist_params`.
+
+    One forward pass serves training and the negative-transfer evaluation (:meth:`forward`, task-major) and
+    acting (:meth:`act`, rows in any order); both go through :func:`~sb3_mtte.common.distributions.squashed_gaussian`.
+
+    :param state_dim: size of the state part of the input.
+    :param action_dim: size of the action.
+    :param n_tasks: number of tasks N.
+    """
+
+    gathers_tasks: bool = False
+    """Whether :meth:`dist_params` needs each row's task index outside a task-major batch (per-task weights)."""
+
+    def __init__(self, state_dim: int, action_dim: int, n_tasks: int) -> None:
+        super().__init__()
+        self.state_dim, self.action_dim, self.n_tasks = state_dim, action_dim, n_tasks
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        """Raw output (mean and log-std of the Gaussian before the tanh).
+
+        :param obs: ``(N, L, obs_dim)`` task-major batch when ``task_ids`` is None, else ``(B, obs_dim)``.
+        :param task_ids: ``(B,)`` task index of every row, or None for a task-major batch.
+        :return: ``(..., 2A)``.
+        """
+        raise NotImplementedError
+
+    def forward(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions ``(N, L, A)`` and log-probabilities ``(N, L)`` of a task-major batch.
+
+        :param obs: ``(N, L, obs_dim)``.
+        :param noise: ``(N, L, A)`` standard normal noise, or None to draw it.
+        """
+        return squashed_gaussian(self.dist_params(obs), noise)
+
+    def act(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Actions ``(B, A)`` for observations ``(B, obs_dim)`` in any order (tasks read from the one-hot)."""
+        task_ids = task_ids_from_obs(obs, self.n_tasks) if self.gathers_tasks else None
+        return squashed_gaussian_action(self.dist_params(obs, task_ids), deterministic)
 
 
 class MultiTaskPolicy(BasePolicy):
@@ -66,7 +114,13 @@ class MultiTaskPolicy(BasePolicy):
 
     def make_critic(self, critic_arch: str = "per_task") -> MultiTaskCritic:
         return MultiTaskCritic(
-            self.state_dim, self.action_dim, self.n_tasks, self.arch("qf"), self.activation_fn, critic_arch, self.n_critics
+            self.state_dim,
+            self.action_dim,
+            self.n_tasks,
+            self.arch("qf"),
+            self.activation_fn,
+            critic_arch,
+            self.n_critics,
         )
 
     def _build_critics(self, lr_schedule: Schedule, critic_arch: str) -> None:
@@ -90,6 +144,14 @@ class MultiTaskPolicy(BasePolicy):
             optimizer_kwargs=self.optimizer_kwargs,
         )
         return data
+
+    def action_log_prob(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
+        """Reparameterised actions ``(N, L, A)`` and log-probabilities ``(N, L)`` of a task-major batch.
+
+        :param obs: ``(N, L, state_dim + N)`` observations.
+        :param noise: ``(N, L, A)`` standard normal noise, or None to draw it.
+        """
+        raise NotImplementedError
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)

@@ -28,11 +28,6 @@ def task_ids_from_obs(obs: th.Tensor, n_tasks: int) -> th.Tensor:
     return obs[..., -n_tasks:].argmax(dim=-1)
 
 
-def split_obs(obs: th.Tensor, n_tasks: int) -> tuple[th.Tensor, th.Tensor]:
-    """``(state, one_hot)`` halves of an observation laid out as state followed by the N-dim one-hot."""
-    return obs[..., :-n_tasks], obs[..., -n_tasks:]
-
-
 def get_task_names(env: VecEnv) -> list[str]:
     """Task names of a multi-task VecEnv (sub-env i is task i); generic names when the env has none."""
     try:

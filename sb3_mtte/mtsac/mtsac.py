@@ -21,9 +21,9 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedul
 from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_mtte.common.buffers import MultiTaskReplayBuffer
+from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
-from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_actor_loss, per_task_entropy_loss
+from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
 
@@ -41,6 +41,9 @@ class MTSAC(OffPolicyAlgorithm):
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
     single task (N = 1, e.g. a gymnasium env wrapped in :class:`~sb3_mtte.envs.wrappers.OneHotTaskWrapper`) and
     ``"MlpPolicy"``, the update is SB3's SAC update.
+
+    Every update hands the ``(N,)`` per-task losses and weights to :meth:`_critic_step` and :meth:`_actor_step`, which
+    minimise ``sum_i w_i L_i``; a gradient-level multi-task method (PCGrad, CAGrad, ...) overrides one of them.
 
     :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
         (SAC-soft-modular) or ``"IndependentPolicy"`` (SAC-Ind), or a policy class.
@@ -247,50 +250,73 @@ class MTSAC(OffPolicyAlgorithm):
         self._n_updates += gradient_steps
         self._record_train_stats({key: th.stack(values).mean(0).cpu().numpy() for key, values in stats.items()})
 
-    def _sac_update(self, replay_data) -> dict[str, th.Tensor]:
+    def _sac_update(self, replay_data: MultiTaskReplayBufferSamples) -> dict[str, th.Tensor]:
         """One SAC update on a task-major batch: beta_i, then critics (Eq. 15-16), then actor (Eq. 9)."""
-        n = self.n_tasks
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
-        log_prob = log_prob.view(n, -1)
-        stats: dict[str, th.Tensor] = {}
+        ent_coef, stats = self._entropy_step(log_prob)
+        critic_losses = self._critic_losses(replay_data, ent_coef)
+        self._critic_step(critic_losses, th.ones_like(critic_losses))
+        stats["critic_loss"] = critic_losses.detach()
+        min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
+        actor_losses = -sac_task_objective(log_prob, min_q_pi, ent_coef)
+        stats["actor_loss"] = self._actor_step(actor_losses, self.task_weights_for_policy()).detach()
+        return stats
 
-        if self.ent_coef_optimizer is not None and self.log_ent_coef is not None:
-            ent_coef = self.log_ent_coef.detach().exp()
-            ent_coef_loss = per_task_entropy_loss(self.log_ent_coef, log_prob.detach(), self.target_entropy).sum()
-            check_finite("entropy coefficient loss", ent_coef_loss)
-            self.ent_coef_optimizer.zero_grad()
-            ent_coef_loss.backward()
-            self.ent_coef_optimizer.step()
-            stats["ent_coef_loss"] = ent_coef_loss.detach()
-        else:
-            ent_coef = self.ent_coef_tensor
-        stats["ent_coef"] = ent_coef
+    def _entropy_step(self, log_prob: th.Tensor) -> tuple[th.Tensor, dict[str, th.Tensor]]:
+        """Update the learned beta_i (Eq. 3) and return the coefficients the losses use, with their stats.
 
+        :param log_prob: ``(N, L)`` log-probabilities of the reparameterised actions.
+        """
+        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
+            return self.ent_coef_tensor, {"ent_coef": self.ent_coef_tensor}
+        ent_coef = self.log_ent_coef.detach().exp()
+        ent_coef_loss = per_task_entropy_loss(self.log_ent_coef, log_prob.detach(), self.target_entropy).sum()
+        check_finite("entropy coefficient loss", ent_coef_loss)
+        self.ent_coef_optimizer.zero_grad()
+        ent_coef_loss.backward()
+        self.ent_coef_optimizer.step()
+        return ent_coef, {"ent_coef_loss": ent_coef_loss.detach(), "ent_coef": ent_coef}
+
+    def _critic_losses(self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor) -> th.Tensor:
+        """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed."""
         with th.no_grad():
             next_actions, next_log_prob = self.policy.action_log_prob(replay_data.next_observations)
             next_q = self.critic_target(replay_data.next_observations, next_actions).min(dim=0).values
-            next_q = next_q - ent_coef[:, None] * next_log_prob.view(n, -1)
-            discounts = replay_data.discounts if replay_data.discounts is not None else self.gamma
-            target_q = replay_data.rewards + (1 - replay_data.dones) * discounts * next_q.reshape(-1, 1)
-
+            next_q = next_q - ent_coef[:, None] * next_log_prob
+            target_q = replay_data.rewards + (1 - replay_data.dones) * self.gamma * next_q
         current_q = self.critic(replay_data.observations, replay_data.actions)
-        critic_losses = clipped_soft_q_loss(current_q, target_q.view(n, -1), self.q_loss_clip)
-        critic_loss = critic_losses.sum()
-        check_finite("critic loss", critic_loss)
-        self.critic.optimizer.zero_grad()
-        critic_loss.backward()
-        self.critic.optimizer.step()
-        stats["critic_loss"] = critic_losses.detach()
+        return clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
 
-        min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
-        actor_losses = per_task_actor_loss(log_prob, min_q_pi, ent_coef)
-        actor_loss = (self.task_weights_for_policy() * actor_losses).sum()
-        check_finite("actor loss", actor_loss)
-        self.actor.optimizer.zero_grad()
-        actor_loss.backward()
-        self.actor.optimizer.step()
-        stats["actor_loss"] = actor_loss.detach()
-        return stats
+    def _critic_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
+        """Apply one critic update from the per-task losses; the hook a gradient-level method overrides.
+
+        :param task_losses: ``(N,)`` per-task critic losses (with their graph).
+        :param task_weights: ``(N,)`` weights of the tasks (ones).
+        :return: the loss that was minimised.
+        """
+        return self._weighted_step(self.critic.optimizer, "critic loss", task_losses, task_weights)
+
+    def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
+        """Apply one actor update from the per-task losses -J_SAC,i; the hook a gradient-level method (PCGrad,
+        CAGrad, ...) overrides.
+
+        :param task_losses: ``(N,)`` per-task policy losses (with their graph).
+        :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`task_weights_for_policy`).
+        :return: the loss that was minimised.
+        """
+        return self._weighted_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
+
+    @staticmethod
+    def _weighted_step(
+        optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
+    ) -> th.Tensor:
+        """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training."""
+        loss = (task_weights * task_losses).sum()
+        check_finite(name, loss)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return loss
 
     def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")

@@ -5,9 +5,9 @@
 - ``SoftModularPolicy`` (SAC-soft-modular, Yang et al. 2020): a routing network over layers of modules.
 - ``IndependentPolicy`` (SAC-Ind): N independent actors on the state alone.
 
-Every actor maps observations (state followed by the N-dim one-hot) to a tanh-squashed Gaussian. Training
-batches are task-major (``task_ids=None``: L rows of task 0, then task 1, ...) so per-task parts run as one
-batched matmul; acting reads the task of each row from its one-hot and gathers the matching weights.
+Every actor maps observations (state followed by the N-dim one-hot) to a tanh-squashed Gaussian through the
+interface of :class:`~sb3_mtte.common.policies.MultiTaskActor`: task-major ``(N, L, ...)`` batches for training,
+rows in any order (tasks gathered from the one-hot) for acting.
 """
 
 from __future__ import annotations
@@ -19,56 +19,15 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP, mlp
-from sb3_mtte.common.policies import MultiTaskPolicy
-from sb3_mtte.common.utils import task_ids_from_obs
-
-
-class MultiTaskActor(nn.Module):
-    """Base class: subclasses implement :meth:`dist_params`.
-
-    :param state_dim: size of the state part of the observation.
-    :param action_dim: size of the action.
-    :param n_tasks: number of tasks N.
-    :param net_arch: hidden layer widths.
-    :param activation_fn: activation function.
-    """
-
-    def __init__(
-        self, state_dim: int, action_dim: int, n_tasks: int, net_arch: list[int], activation_fn: type[nn.Module]
-    ) -> None:
-        super().__init__()
-        self.state_dim, self.action_dim, self.n_tasks = state_dim, action_dim, n_tasks
-
-    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
-        """Raw ``(B, 2A)`` output (mean and log-std). ``task_ids=None`` means a task-major batch."""
-        raise NotImplementedError
-
-    def action_log_prob(
-        self, obs: th.Tensor, task_ids: th.Tensor | None = None, noise: th.Tensor | None = None
-    ) -> tuple[th.Tensor, th.Tensor]:
-        """Reparameterised actions ``(B, A)`` and log-probabilities ``(B,)``."""
-        mean, log_std = split_mean_log_std(self.dist_params(obs, task_ids))
-        return squashed_gaussian_sample(mean, log_std, noise)
-
-    def forward(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
-        """Actions for observations in any order (the task of each row is read from its one-hot)."""
-        params = self.dist_params(obs, task_ids_from_obs(obs, self.n_tasks))
-        mean, log_std = split_mean_log_std(params)
-        if deterministic:
-            return th.tanh(mean)
-        return squashed_gaussian_sample(mean, log_std)[0]
-
-    def _task_major(self, x: th.Tensor) -> th.Tensor:
-        return x.view(self.n_tasks, -1, x.shape[-1])
+from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
 
 
 class SharedActor(MultiTaskActor):
     """SAC-MT: one MLP on state + one-hot."""
 
     def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
-        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        super().__init__(state_dim, action_dim, n_tasks)
         self.net = mlp(state_dim + n_tasks, net_arch, 2 * action_dim, activation_fn)
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
@@ -78,29 +37,33 @@ class SharedActor(MultiTaskActor):
 class MultiHeadActor(MultiTaskActor):
     """SAC-MT-MH: shared trunk on state + one-hot, one linear output head per task (batched)."""
 
+    gathers_tasks = True
+
     def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
-        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        super().__init__(state_dim, action_dim, n_tasks)
         self.trunk = mlp(state_dim + n_tasks, net_arch, 0, activation_fn)
         self.heads = EnsembleLinear(n_tasks, net_arch[-1], 2 * action_dim)
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         latent = self.trunk(obs)
         if task_ids is None:
-            return self.heads(self._task_major(latent)).reshape(obs.shape[0], -1)
+            return self.heads(latent)
         return self.heads.forward_gather(latent, task_ids)
 
 
 class IndependentActor(MultiTaskActor):
     """SAC-Ind: N independent MLPs on the state alone (batched as one ensemble)."""
 
+    gathers_tasks = True
+
     def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn) -> None:
-        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        super().__init__(state_dim, action_dim, n_tasks)
         self.nets = EnsembleMLP(n_tasks, state_dim, net_arch, 2 * action_dim, activation_fn)
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
-        state = obs[:, : self.state_dim]
+        state = obs[..., : self.state_dim]
         if task_ids is None:
-            return self.nets(self._task_major(state)).reshape(obs.shape[0], -1)
+            return self.nets(state)
         return self.nets.forward_gather(state, task_ids)
 
 
@@ -136,7 +99,7 @@ class SoftModularActor(MultiTaskActor):
         n_modules: int = 4,
         module_size: int = 128,
     ) -> None:
-        super().__init__(state_dim, action_dim, n_tasks, net_arch, activation_fn)
+        super().__init__(state_dim, action_dim, n_tasks)
         if n_layers < 2 or n_modules < 1:
             raise ValueError("SoftModularPolicy needs n_layers >= 2 and n_modules >= 1.")
         self.n_layers, self.n_modules = n_layers, n_modules
@@ -145,11 +108,16 @@ class SoftModularActor(MultiTaskActor):
         self.route_down = nn.ModuleList(nn.Linear(net_arch[-1], n_modules * n_modules) for _ in range(n_layers - 1))
         self.route_up = nn.ModuleList(nn.Linear(n_modules * n_modules, net_arch[-1]) for _ in range(n_layers - 2))
         sizes = [net_arch[-1]] + [module_size] * n_layers
-        self.modules_per_layer = nn.ModuleList(EnsembleLinear(n_modules, sizes[k], sizes[k + 1]) for k in range(n_layers))
+        self.modules_per_layer = nn.ModuleList(
+            EnsembleLinear(n_modules, sizes[k], sizes[k + 1]) for k in range(n_layers)
+        )
         self.head = nn.Linear(module_size, 2 * action_dim)
         self.activation = activation_fn()
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        """Rows are independent samples: any leading dims are flattened for the routing and restored."""
+        leading = obs.shape[:-1]
+        obs = obs.reshape(-1, obs.shape[-1])
         state, one_hot = obs[:, : self.state_dim], obs[:, self.state_dim :]
         features = self.state_encoder(state)
         context = features * self.task_encoder(one_hot)
@@ -162,7 +130,7 @@ class SoftModularActor(MultiTaskActor):
             x = self.activation(self.modules_per_layer[layer](x))
             if layer < self.n_layers - 1:
                 logits = self.route_down[layer](th.relu(self.route_up[layer - 1](logits) * context))
-        return self.head(x.sum(dim=0))
+        return self.head(x.sum(dim=0)).view(*leading, -1)
 
 
 class MTSACPolicy(MultiTaskPolicy):
@@ -198,7 +166,14 @@ class MTSACPolicy(MultiTaskPolicy):
         optimizer_kwargs: dict[str, Any] | None = None,
     ) -> None:
         super().__init__(
-            observation_space, action_space, n_tasks, net_arch, activation_fn, n_critics, optimizer_class, optimizer_kwargs
+            observation_space,
+            action_space,
+            n_tasks,
+            net_arch,
+            activation_fn,
+            n_critics,
+            optimizer_class,
+            optimizer_kwargs,
         )
         self.critic_arch = critic_arch
         self.actor_kwargs = actor_kwargs or {}
@@ -209,14 +184,17 @@ class MTSACPolicy(MultiTaskPolicy):
         self._build_critics(lr_schedule, critic_arch)
 
     def action_log_prob(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
-        """Reparameterised actions and log-probabilities of a task-major batch."""
-        return self.actor.action_log_prob(obs, None, noise)
+        return self.actor(obs, noise)
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
-        return {**super()._get_constructor_parameters(), "critic_arch": self.critic_arch, "actor_kwargs": self.actor_kwargs}
+        return {
+            **super()._get_constructor_parameters(),
+            "critic_arch": self.critic_arch,
+            "actor_kwargs": self.actor_kwargs,
+        }
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        return self.actor(observation, deterministic)
+        return self.actor.act(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
         self.actor.train(mode)
@@ -240,4 +218,6 @@ class IndependentPolicy(MTSACPolicy):
     """SAC-Ind: N independent actors on the state alone, with per-task critics."""
 
     actor_class = IndependentActor
+
+
 MlpPolicy = MTSACPolicy

@@ -2,20 +2,20 @@
 
 from __future__ import annotations
 
-import json
-import os
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
 import torch as th
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback, ConvertCallback
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
-from sb3_mtte.mtsacte.objectives import negative_transfer_measure, select_benign_tasks, task_weights
+from sb3_mtte.mtsacte.callbacks import NegativeTransferLogCallback
+from sb3_mtte.mtsacte.objectives import TaskSelection, select_tasks
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.probe import task_probe_accuracy
 from sb3_mtte.mtsacte.transfer import (
@@ -24,11 +24,12 @@ from sb3_mtte.mtsacte.transfer import (
     TaskObjectives,
     TransferStatistics,
     representation_gradients,
-    significant_negative_transfer_measure,
     transfer_matrix,
 )
 
 NT_MEASURES = ("per_batch", "mean", "significant")
+# Attributes holding the last recomputation's TaskSelection: tensors on the model's device, numpy in a checkpoint.
+SELECTION_ATTRIBUTES = ("transfer_matrix", "mu", "selected_tasks", "task_weights")
 
 SelfMTSACTE = TypeVar("SelfMTSACTE", bound="MTSACTE")
 
@@ -41,6 +42,10 @@ class MTSACTE(MTSAC):
     J^rep (Eq. 14) on top-K batches, each recomputing mu (Eq. 6), C_s (Eq. 7) and w (Eq. 8); the last C_s and w
     hold for the iteration. Every vector step: clipped per-task critic losses (Eq. 15-16), the weighted policy loss
     (Eq. 9) with z detached from phi, per-task beta_i, Polyak targets.
+
+    ``mu``, ``selected_tasks`` (C_s), ``task_weights`` (w) and ``transfer_matrix`` hold the last recomputation as
+    tensors on the model's device (numpy in a checkpoint). ``learn`` adds a :class:`NegativeTransferLogCallback`,
+    which writes one line per iteration to ``negative_transfer.jsonl`` in the logger's folder.
 
     Ablations of Fig. 7: ``use_vae=False`` (Ours-VAE), ``q_loss_clip=None`` (Ours-clip), ``use_topk=False``
     (Ours-bestbatch).
@@ -174,18 +179,26 @@ class MTSACTE(MTSAC):
         self.nt_estimator, self.nt_chunk_size = nt_estimator, nt_chunk_size
         self.nt_measure = nt_measure
         self._last_iteration: int | None = None
+        self.negative_transfer_records: list[dict[str, Any]] = []
+        """Records of ``negative_transfer.jsonl`` (one per iteration) until :class:`NegativeTransferLogCallback` writes them."""
         if _init_setup_model:
             self._setup_model()
 
     def _setup_model(self) -> None:
         super()._setup_model()
         if getattr(self, "mu", None) is None:
-            n = self.n_tasks
-            self.mu = np.zeros(n, dtype=np.int64)
-            self.selected_tasks = np.zeros(n, dtype=bool)
-            self.task_weights = np.full(n, 1.0 / n, dtype=np.float32)
-            self.transfer_matrix = np.zeros((n, n))
+            n, dtype = self.n_tasks, self._actor_dtype()
+            mu = th.zeros(n, dtype=th.long, device=self.device)
+            transfer = th.zeros(n, n, dtype=dtype, device=self.device)
+            weights = th.full((n,), 1.0 / n, dtype=dtype, device=self.device)
+            self._set_selection(TaskSelection(transfer, mu, th.zeros_like(mu, dtype=th.bool), weights))
             self.task_probe_accuracy = self.task_probe_accuracy_of_mean = self.z_std = float("nan")
+        else:  # numpy arrays restored from a checkpoint
+            for name in SELECTION_ATTRIBUTES:
+                setattr(self, name, th.as_tensor(getattr(self, name), device=self.device))
+
+    def _actor_dtype(self) -> th.dtype:
+        return next(self.policy.actor.parameters()).dtype
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         return {**super()._policy_build_kwargs(), "rep_learning_rate": self.rep_learning_rate}
@@ -207,11 +220,19 @@ class MTSACTE(MTSAC):
             self._last_iteration = None
         return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
+    def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
+        """The user's callbacks, after a :class:`NegativeTransferLogCallback` that writes the records."""
+        callbacks: list[BaseCallback] = [NegativeTransferLogCallback()]
+        if isinstance(callback, list):
+            callbacks += callback
+        elif callback is not None:
+            callbacks.append(callback if isinstance(callback, BaseCallback) else ConvertCallback(callback))
+        return super()._init_callback(callbacks, progress_bar)
+
     # --------------------------------------------------------------------------------------------- training
     def task_weights_for_policy(self) -> th.Tensor:
         """w of Eq. 8 from the last recomputation (uniform before the first)."""
-        dtype = next(self.policy.actor.parameters()).dtype
-        return th.as_tensor(self.task_weights, dtype=dtype, device=self.device)
+        return self.task_weights
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
         # Iteration k of Algorithm 1 spans vector steps [k H, (k + 1) H): its first update recomputes C_s and w.
@@ -224,7 +245,7 @@ class MTSACTE(MTSAC):
     def _representation_batch(self, batch_size: int) -> RepresentationBatch:
         buffer = self.replay_buffer
         data = buffer.sample_top_k(batch_size) if self.use_topk else buffer.sample(batch_size)  # type: ignore[union-attr]
-        return RepresentationBatch.draw(data.observations, self.n_tasks, self.policy.z_dim, self.policy.action_dim)
+        return RepresentationBatch.draw(data.observations, self.policy.z_dim, self.policy.action_dim)
 
     def update_representation(self, batch_size: int) -> None:
         """``rep_gradient_steps`` updates of phi and the decoder by J^rep (Alg. 1), each recomputing mu, C_s, w."""
@@ -238,11 +259,10 @@ class MTSACTE(MTSAC):
                 z, z_mean, z_log_std = objectives.embedding(encoder_params)
                 transfer = transfer_matrix(objectives, z, self.nt_step_size, self.nt_estimator)
             statistics.add(transfer)
-            transfer, mu = self._measure(transfer, statistics)
-            selected = select_benign_tasks(mu, self.n_select)  # type: ignore[arg-type]
+            self._set_selection(self._select(transfer, statistics))
             loss, enc_grads, dec_grads = representation_gradients(
                 objectives,
-                th.nonzero(~selected).flatten(),
+                th.nonzero(~self.selected_tasks).flatten(),
                 step_size=self.nt_step_size,
                 c_vae=self.c_vae,
                 use_vae=self.use_vae,
@@ -251,20 +271,19 @@ class MTSACTE(MTSAC):
             check_finite("representation loss (J^rep)", loss)
             self._apply_gradients(enc_grads, dec_grads)
             losses.append(loss.detach())
-            self._store_negative_transfer(transfer, mu, selected)
         self.task_probe_accuracy = task_probe_accuracy(z)
         self.task_probe_accuracy_of_mean = task_probe_accuracy(z_mean)
         self.z_std = float(z_log_std.exp().mean())
         self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
 
-    def _measure(self, transfer: th.Tensor, statistics: TransferStatistics) -> tuple[th.Tensor, th.Tensor]:
-        """The matrix that mu is read from (this batch's, or the iteration's mean), and mu."""
+    def _select(self, transfer: th.Tensor, statistics: TransferStatistics) -> TaskSelection:
+        """mu, C_s and w (Eq. 6-8) from this batch's matrix or from the iteration's mean (``nt_measure``)."""
+        dtype = self._actor_dtype()
         if self.nt_measure == "per_batch":
-            return transfer, negative_transfer_measure(transfer)
-        if self.nt_measure == "mean":
-            return statistics.mean, negative_transfer_measure(statistics.mean)
-        return statistics.mean, significant_negative_transfer_measure(statistics.mean, statistics.standard_error)
+            return select_tasks(transfer, self.n_select, dtype)  # type: ignore[arg-type]
+        error = statistics.standard_error if self.nt_measure == "significant" else None
+        return select_tasks(statistics.mean, self.n_select, dtype, error)  # type: ignore[arg-type]
 
     def _chunk_size(self) -> int | None:
         if self.nt_chunk_size == "auto":
@@ -279,45 +298,50 @@ class MTSACTE(MTSAC):
                 param.grad = grads[name]
         optimizer.step()
 
-    def _store_negative_transfer(self, transfer: th.Tensor, mu: th.Tensor, selected: th.Tensor) -> None:
-        self.transfer_matrix = transfer.cpu().numpy().astype(np.float64)
-        self.mu = mu.cpu().numpy().astype(np.int64)
-        self.selected_tasks = selected.cpu().numpy()
-        dtype = next(self.policy.actor.parameters()).dtype
-        self.task_weights = task_weights(mu, dtype).cpu().numpy()
+    def _set_selection(self, selection: TaskSelection) -> None:
+        self.transfer_matrix, self.mu, self.selected_tasks, self.task_weights = selection
 
     def _log_negative_transfer(self) -> None:
-        self.logger.record("nt/n_selected", int(self.selected_tasks.sum()))
-        self.logger.record("nt/mu_mean", float(self.mu.mean()))
+        """Record the ``nt/*`` and ``rep/*`` keys and queue the record of ``negative_transfer.jsonl``."""
+        mu, weights, selected = (getattr(self, name).cpu().numpy() for name in ("mu", "task_weights", "selected_tasks"))
+        self.logger.record("nt/n_selected", int(selected.sum()))
+        self.logger.record("nt/mu_mean", float(mu.mean()))
         self.logger.record("rep/task_probe_accuracy", self.task_probe_accuracy)
         self.logger.record("rep/task_probe_accuracy_of_mean", self.task_probe_accuracy_of_mean)
         self.logger.record("rep/z_std", self.z_std)
         for i in range(self.n_tasks):
             name = self._task_name(i)
-            self.logger.record(task_log_key("nt/mu", i, name), int(self.mu[i]))
-            self.logger.record(task_log_key("nt/weight", i, name), float(self.task_weights[i]))
-        log_dir = self.logger.get_dir() if self._logger is not None else None
-        if log_dir:
+            self.logger.record(task_log_key("nt/mu", i, name), int(mu[i]))
+            self.logger.record(task_log_key("nt/weight", i, name), float(weights[i]))
+        if self._logger is not None and self.logger.get_dir():
             record = {
                 "timesteps": self.num_timesteps,
-                "mu": self.mu.tolist(),
-                "selected": self.selected_tasks.astype(int).tolist(),
-                "weights": self.task_weights.tolist(),
-                "transfer_matrix": self.transfer_matrix.tolist(),
+                "mu": mu.tolist(),
+                "selected": selected.astype(int).tolist(),
+                "weights": weights.tolist(),
+                "transfer_matrix": self.transfer_matrix.cpu().numpy().astype(np.float64).tolist(),
                 "task_probe_accuracy": self.task_probe_accuracy,
                 "task_probe_accuracy_of_mean": self.task_probe_accuracy_of_mean,
                 "z_std": self.z_std,
             }
-            with open(os.path.join(log_dir, "negative_transfer.jsonl"), "a") as file:
-                file.write(json.dumps(record) + "\n")
+            self.negative_transfer_records.append(record)
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "encoder", "decoder"]
+        return [*super()._excluded_save_params(), "encoder", "decoder", "negative_transfer_records"]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts, variables = super()._get_torch_save_params()
         return [*state_dicts, "policy.rep_optimizer"], variables
+
+    def save(self, path, exclude=None, include=None) -> None:
+        """Save the model; mu, C_s, w and the transfer matrix go into the checkpoint as numpy arrays."""
+        tensors = {name: getattr(self, name) for name in SELECTION_ATTRIBUTES}
+        self.__dict__.update({name: value.cpu().numpy() for name, value in tensors.items()})
+        try:
+            super().save(path, exclude=exclude, include=include)
+        finally:
+            self.__dict__.update(tensors)
 
     def learn(
         self: SelfMTSACTE,

@@ -1,22 +1,14 @@
 """The paper's equations as pure functions (Section 3). Every tensor is task-major; N = number of tasks.
 
-Sign convention: J_SAC,i is an objective to maximise (Eq. 1 negated), J_SAC,i = -mean(beta_i log pi - min_j Q_ij).
+Sign convention: J_SAC,i (:func:`sb3_mtte.common.losses.sac_task_objective`) is an objective to maximise (Eq. 1
+negated), J_SAC,i = -mean(beta_i log pi - min_j Q_ij). Eq. 9's weighted sum is the actor step of the algorithm.
 """
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch as th
-
-
-def sac_task_objective(log_prob: th.Tensor, min_q: th.Tensor, ent_coef: th.Tensor) -> th.Tensor:
-    """J_SAC(theta, phi, T_i) for every task, the negative of Eq. 1 on task i's mini-batch.
-
-    :param log_prob: ``(..., N, L)`` log pi(a|s, z) of reparameterised actions.
-    :param min_q: ``(..., N, L)`` min over twin critics Q_i at those actions.
-    :param ent_coef: ``(N,)`` beta_i.
-    :return: ``(..., N)``.
-    """
-    return -(ent_coef[:, None] * log_prob - min_q).mean(dim=-1)
 
 
 def virtual_step(theta: th.Tensor, grad: th.Tensor, step_size: float) -> th.Tensor:
@@ -31,6 +23,11 @@ def negative_transfer_measure(transfer_matrix: th.Tensor) -> th.Tensor:
     :return: ``(N,)`` integer counts.
     """
     return (transfer_matrix < 0).sum(dim=1)
+
+
+def significant_negative_transfer_measure(mean: th.Tensor, standard_error: th.Tensor, z: float = 2.0) -> th.Tensor:
+    """mu counting only the entries [k, i] whose mean over batches is below zero by more than z standard errors."""
+    return (mean + z * standard_error < 0).sum(dim=1)
 
 
 def select_benign_tasks(mu: th.Tensor, n_select: int) -> th.Tensor:
@@ -53,9 +50,37 @@ def task_weights(mu: th.Tensor, dtype: th.dtype = th.float32) -> th.Tensor:
     return th.softmax(n_tasks - mu.to(dtype), dim=-1)
 
 
-def policy_objective(task_objectives: th.Tensor, weights: th.Tensor) -> th.Tensor:
-    """Eq. 9: J^policy(theta) = sum_i w_i J_SAC(theta, phi, T_i)."""
-    return (weights * task_objectives).sum(dim=-1)
+class TaskSelection(NamedTuple):
+    """mu, C_s and w of one recomputation, with the transfer matrix they were read from (tensors, one device).
+
+    :param transfer_matrix: ``(N, N)``, entry [k, i] = J_i(theta^k) - J_i(theta).
+    :param mu: ``(N,)`` long, Eq. 6.
+    :param selected: ``(N,)`` bool mask of C_s, Eq. 7.
+    :param weights: ``(N,)`` w, Eq. 8.
+    """
+
+    transfer_matrix: th.Tensor
+    mu: th.Tensor
+    selected: th.Tensor
+    weights: th.Tensor
+
+
+def select_tasks(
+    transfer_matrix: th.Tensor, n_select: int, dtype: th.dtype, standard_error: th.Tensor | None = None
+) -> TaskSelection:
+    """Eq. 6-8 together: mu from the transfer matrix, the benign set C_s of the M least harmful tasks, and w.
+
+    :param transfer_matrix: ``(N, N)``, entry [k, i] = J_i(theta^k) - J_i(theta) (or its mean over batches).
+    :param n_select: M.
+    :param dtype: dtype of w (the actor's).
+    :param standard_error: ``(N, N)`` standard error of a mean matrix: mu then counts only the entries significantly
+        below zero (:func:`significant_negative_transfer_measure`); None is Eq. 6.
+    """
+    if standard_error is None:
+        mu = negative_transfer_measure(transfer_matrix)
+    else:
+        mu = significant_negative_transfer_measure(transfer_matrix, standard_error)
+    return TaskSelection(transfer_matrix, mu, select_benign_tasks(mu, n_select), task_weights(mu, dtype))
 
 
 def negative_transfer_objective(objectives_after_step: th.Tensor) -> th.Tensor:

@@ -10,9 +10,32 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
 from sb3_mtte.common.ensemble import mlp
-from sb3_mtte.common.policies import MultiTaskPolicy
+from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
+
+
+class EmbeddingActor(MultiTaskActor):
+    """pi_theta(a | s, z): the multi-task actor interface on the state followed by the representation z.
+
+    Its inputs are ``(state, z)`` instead of (state, one-hot): the task enters only through z ~ E_phi.
+
+    :param state_dim: size of the state.
+    :param z_dim: size of z.
+    :param action_dim: size of the action.
+    :param n_tasks: number of tasks N.
+    :param net_arch: hidden layer widths.
+    :param activation_fn: activation function.
+    """
+
+    def __init__(
+        self, state_dim: int, z_dim: int, action_dim: int, n_tasks: int, net_arch: list[int], activation_fn
+    ) -> None:
+        super().__init__(state_dim, action_dim, n_tasks)
+        self.net = mlp(state_dim + z_dim, net_arch, 2 * action_dim, activation_fn)
+
+    def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
+        return self.net(obs)
 
 
 class MTSACTEPolicy(MultiTaskPolicy):
@@ -67,7 +90,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
         act, state_dim, action_dim = activation_fn, self.state_dim, self.action_dim
         self.encoder = mlp(state_dim + n_tasks, self.arch("embed"), 2 * z_dim, act)
         self.decoder = mlp(z_dim + n_tasks, self.arch("decoder"), state_dim, act)
-        self.actor = mlp(state_dim + z_dim, self.arch("pi"), 2 * action_dim, act)
+        self.actor = EmbeddingActor(state_dim, z_dim, action_dim, n_tasks, self.arch("pi"), act)
         self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule(1))
         self._build_critics(lr_schedule, "per_task")
         rep_params = [*self.encoder.parameters(), *self.decoder.parameters()]
@@ -80,19 +103,21 @@ class MTSACTEPolicy(MultiTaskPolicy):
     def embed(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
         """z ~ E_phi(.|s, one-hot), or its mean when deterministic."""
         mean, log_std = self.embedding_params(obs)
-        return mean if deterministic else mean + log_std.exp() * th.randn_like(mean)
+        return mean if deterministic else gaussian_sample(mean, log_std, th.randn_like(mean))
+
+    def actor_input(self, state: th.Tensor, z: th.Tensor) -> th.Tensor:
+        """The input of pi_theta: the state followed by z."""
+        return th.cat([state, z], dim=-1)
 
     def action_log_prob(self, obs: th.Tensor, noise: th.Tensor | None = None) -> tuple[th.Tensor, th.Tensor]:
-        """Reparameterised actions and log-probabilities with z ~ E_phi detached (theta only, Alg. 1)."""
+        """Task-major actions and log-probabilities with z ~ E_phi detached (theta only, Alg. 1)."""
         with th.no_grad():
             z = self.embed(obs)
-        mean, log_std = split_mean_log_std(self.actor(th.cat([obs[:, : self.state_dim], z], dim=1)))
-        return squashed_gaussian_sample(mean, log_std, noise)
+        return self.actor(self.actor_input(obs[..., : self.state_dim], z), noise)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         z = self.embed(observation, deterministic)
-        mean, log_std = split_mean_log_std(self.actor(th.cat([observation[:, : self.state_dim], z], dim=1)))
-        return th.tanh(mean) if deterministic else squashed_gaussian_sample(mean, log_std)[0]
+        return self.actor.act(self.actor_input(observation[..., : self.state_dim], z), deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
         for module in (self.actor, self.critic, self.encoder, self.decoder):

@@ -13,11 +13,11 @@ from dataclasses import dataclass
 import torch as th
 from torch.func import functional_call, grad, vjp, vmap
 
-from sb3_mtte.common.distributions import split_mean_log_std, squashed_gaussian_sample
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
+from sb3_mtte.common.losses import sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     negative_transfer_objective,
     representation_objective,
-    sac_task_objective,
     vae_objective,
     virtual_step,
 )
@@ -41,8 +41,8 @@ class RepresentationBatch:
     action_noise: th.Tensor
 
     @classmethod
-    def draw(cls, obs: th.Tensor, n_tasks: int, z_dim: int, action_dim: int) -> RepresentationBatch:
-        obs = obs.view(n_tasks, -1, obs.shape[-1])
+    def draw(cls, obs: th.Tensor, z_dim: int, action_dim: int) -> RepresentationBatch:
+        """The batch of task-major observations ``(N, L, obs_dim)`` with fresh noise."""
         shape = obs.shape[:2]
         return cls(obs, th.randn(*shape, z_dim, device=obs.device), th.randn(*shape, action_dim, device=obs.device))
 
@@ -78,12 +78,11 @@ class TaskObjectives:
     def embedding(self, encoder_params: Params) -> tuple[th.Tensor, th.Tensor, th.Tensor]:
         """z = mean + std * noise from E_phi, with its mean and log-std, each ``(N, L, ...)``."""
         mean, log_std = split_mean_log_std(functional_call(self.policy.encoder, encoder_params, (self.batch.obs,)))
-        return mean + log_std.exp() * self.batch.z_noise, mean, log_std
+        return gaussian_sample(mean, log_std, self.batch.z_noise), mean, log_std
 
     def _single(self, theta: Params, q_params: Params, state: th.Tensor, z: th.Tensor, noise: th.Tensor, beta):
-        """J_SAC of one task from its ``(L, ...)`` slice of the batch."""
-        mean, log_std = split_mean_log_std(functional_call(self.policy.actor, theta, (th.cat([state, z], dim=-1),)))
-        action, log_prob = squashed_gaussian_sample(mean, log_std, noise)
+        """J_SAC of one task from its ``(L, ...)`` slice of the batch, through the actor's training forward pass."""
+        action, log_prob = functional_call(self.policy.actor, theta, (self.policy.actor_input(state, z), noise))
         q_in = th.cat([state, action], dim=-1).expand(self.policy.n_critics, *state.shape[:-1], -1)
         min_q = functional_call(self.policy.critic.q_net, q_params, (q_in,)).squeeze(-1).min(dim=0).values
         return sac_task_objective(log_prob.unsqueeze(0), min_q.unsqueeze(0), beta.unsqueeze(0)).squeeze(0)
@@ -224,8 +223,3 @@ class TransferStatistics:
             return th.zeros_like(self.total)  # type: ignore[arg-type]
         variance = (self.total_squares / self.count - self.mean.pow(2)).clamp_min(0) * self.count / (self.count - 1)
         return (variance / self.count).sqrt()
-
-
-def significant_negative_transfer_measure(mean: th.Tensor, standard_error: th.Tensor, z: float = 2.0) -> th.Tensor:
-    """mu counting only the entries [k, i] whose mean over batches is below zero by more than z standard errors."""
-    return (mean + z * standard_error < 0).sum(dim=1)
