@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
+from conftest import ENV, TINY, tiny_train
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.save_util import load_from_pkl
 
-from conftest import ENV, TINY, tiny_train
 from sb3_mtte import MTSAC, MTSACTE
 from sb3_mtte.common.utils import check_one_hot, get_task_names
 from sb3_mtte.experiments.checkpoints import find_checkpoints, load_model

@@ -28,7 +28,8 @@ from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, ZooEvalC
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
 from sb3_mtte.experiments.configs import family_config_path
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
-from sb3_mtte.experiments.run_logs import NT_FILE, make_run_logger, set_aside_monitor_files, trim_jsonl
+from sb3_mtte.experiments.run_logs import make_run_logger, set_aside_monitor_files, trim_jsonl
+from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
 
 LAUNCHER_YAML_KEYS = ("eval_freq", "eval_episodes", "save_freq")
 """Hyperparameter-file keys read by the launcher (defaults of the command-line flags), not by the model."""
@@ -216,7 +217,7 @@ class MultiTaskExperimentManager(ExperimentManager):
         self.resume_step = step
         print(f"Resuming {run_dir} from " + (f"{self.checkpoint.model.name}" if self.checkpoint else "scratch"))
         set_aside_monitor_files(run_dir)
-        trim_jsonl(run_dir / NT_FILE, step)
+        trim_jsonl(run_dir / NT_LOG_FILE, step)
         if self.checkpoint is None:
             result = super().setup_experiment()
             assert result is not None

@@ -19,7 +19,6 @@ from stable_baselines3.common.logger import (
 from torch.utils.tensorboard import SummaryWriter
 
 PROGRESS_FILE = "progress.csv"
-NT_FILE = "negative_transfer.jsonl"
 STEP_KEY = "time/total_timesteps"
 
 

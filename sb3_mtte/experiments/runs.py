@@ -27,6 +27,7 @@ from tensorboard.backend.event_processing import event_accumulator
 from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments.run_info import RUN_INFO_FILE
 from sb3_mtte.experiments.variants import variant_labels
+from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
 
 Series = tuple[np.ndarray, np.ndarray]
 
@@ -125,8 +126,8 @@ def load_run(path: Path) -> Run:
         run.scalars = read_progress_csv(path / "progress.csv")
     elif any(path.rglob("events.out.tfevents.*")):
         run.scalars = read_tensorboard(path)
-    if (path / "negative_transfer.jsonl").is_file():
-        for line in (path / "negative_transfer.jsonl").read_text().splitlines():
+    if (path / NT_LOG_FILE).is_file():
+        for line in (path / NT_LOG_FILE).read_text().splitlines():
             try:
                 run.nt_records.append(json.loads(line))
             except json.JSONDecodeError:
