@@ -1,5 +1,10 @@
 """sb3-mtte: multi-task SAC with a task embedding network, and the MTSAC baselines, for Stable-Baselines3."""
 
+from sb3_mtte.openmp import set_spin_default
+
+set_spin_default()  # before torch loads its OpenMP runtime
+
+
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer
 from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.envs import get_task_names, make_mt_env

@@ -26,6 +26,7 @@ from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, res
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
+from sb3_mtte.openmp import warn_if_spinning
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
 
@@ -213,6 +214,8 @@ class MTSAC(OffPolicyAlgorithm):
         self._setup_replay_buffer()
         result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
         check_one_hot(self._last_obs, self.n_tasks)  # type: ignore[arg-type]
+        if self.device.type == "cpu":
+            warn_if_spinning(th.get_num_threads())
         if not hasattr(self, "_task_success") or reset_num_timesteps:
             self._task_success = [deque(maxlen=self._stats_window_size) for _ in range(self.n_tasks)]
         return result
