@@ -142,7 +142,14 @@ def test_cagrad_of_agreeing_gradients_moves_along_g0_and_of_zero_gradients_is_ze
 def small_model(**kwargs):
     env = make_mt_env("toy-conflict", seed=0)
     return MTSAC(
-        "MlpPolicy", env, learning_starts=100, batch_size=16, seed=0, policy_kwargs={"net_arch": [16, 16]}, **kwargs
+        "MlpPolicy",
+        env,
+        learning_starts=100,
+        batch_size=16,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [16, 16]},
+        **kwargs,
     )
 
 
