@@ -167,8 +167,12 @@ def test_save_load_round_trip(policy, tmp_path):
     assert np.array_equal(model.predict(obs, deterministic=True)[0], loaded.predict(obs, deterministic=True)[0])
 
 
-def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(tmp_path):
-    model = small_model()
+@pytest.mark.parametrize(
+    "kwargs", [{}, {"gradient_surgery": "pcgrad"}, {"gradient_surgery": "cagrad", "cagrad_c": 0.3}], ids=str
+)
+def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(kwargs, tmp_path):
+    """Also with gradient surgery: the method and c are restored, and PCGrad's random orders replay."""
+    model = small_model(**kwargs)
     model.learn(300)
     model.save(tmp_path / "model")
     model.save_replay_buffer(tmp_path / "buffer")
@@ -176,6 +180,7 @@ def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(tmp_path):
     expected = all_params(model)
 
     resumed = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0))
+    assert {key: getattr(resumed, key) for key in kwargs} == kwargs
     resumed.load_replay_buffer(tmp_path / "buffer")
     resumed.set_logger(model.logger)
     resumed.train(gradient_steps=2, batch_size=16)

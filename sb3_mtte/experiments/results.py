@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.experiments.runs import Run, label_order, success_curve
-from sb3_mtte.experiments.variants import paper_table1
+from sb3_mtte.experiments.variants import paper_sources, paper_table1
 
 
 def final_success(run: Run) -> float | None:
@@ -68,6 +68,10 @@ def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> 
     if with_paper and shown:
         paper = ["| Algorithm | " + " | ".join(shown) + " |", "|:--|" + "--:|" * len(shown)]
         for label, values in paper_table1().items():
-            paper.append(f"| {label} | " + " | ".join(f"{values[b]:.1f}%" for b in shown) + " |")
-        text += "\n\nThe paper's Table 1 (Meta-World v2, 5 seeds), for reference:\n\n" + "\n".join(paper)
+            cells = (f"{values[b]:.1f}%" if b in values else "-" for b in shown)
+            paper.append(f"| {label} | " + " | ".join(cells) + " |")
+        sources = "".join(f"\n- {label}: {source}." for label, source in paper_sources().items())
+        text += "\n\nPublished success, for reference: the paper's Table 1 (Meta-World v2, 5 seeds)"
+        text += (", except the rows of another source:" + sources) if sources else ":"
+        text += "\n\n" + "\n".join(paper)
     return text + "\n"

@@ -82,7 +82,8 @@ class Variant:
     :param policy: the policy (hyperparameter ``policy``).
     :param overrides: hyperparameters that make it this variant, set in every env entry of the family's file.
     :param env_overrides: further hyperparameters per env entry, keyed by a pattern of the entry (``"toy-*"``).
-    :param paper: the paper's Table 1 success rate (%) per benchmark.
+    :param paper: published success rate (%) per benchmark: the paper's Table 1, or ``paper_source``'s.
+    :param paper_source: where ``paper`` comes from when it is not the paper's Table 1.
     :param ablation_of: key of the variant it ablates (Fig. 7), if any.
     """
 
@@ -93,6 +94,7 @@ class Variant:
     overrides: Mapping[str, Any] = field(default_factory=dict)
     env_overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     paper: Mapping[str, float] = field(default_factory=dict)
+    paper_source: str | None = None
     ablation_of: str | None = None
 
     @property
@@ -112,6 +114,10 @@ class Variant:
         return hyperparams
 
 
+_CAGRAD_TABLE3 = (
+    "Liu et al. 2021 (CAGrad), Table 3: mean of 10 runs on mtrl's multi-task SAC, 2M env steps per task, on the "
+    "Meta-World of Feb 2021 that their README pins (commit d9a75c4), not Meta-World v3"
+)
 _SOFT_MODULAR = "actor_kwargs=dict(n_layers={0}, n_modules={0}, module_size={1})"
 
 VARIANTS: dict[str, Variant] = {}
@@ -158,8 +164,14 @@ def ablation_labels() -> list[str]:
     return labels
 
 
+def paper_sources() -> dict[str, str]:
+    """Label -> source of its published numbers, for the variants whose numbers are not the paper's Table 1."""
+    return {variant.label: variant.paper_source for variant in VARIANTS.values() if variant.paper_source}
+
+
 def paper_table1() -> dict[str, dict[str, float]]:
-    """The paper's Table 1 (%, Meta-World v2): label -> benchmark -> success, for the variants it reports."""
+    """Published success (%): label -> benchmark -> success, for the variants with published numbers (the paper's
+    Table 1 on Meta-World v2, or :func:`paper_sources`)."""
     return {variant.label: dict(variant.paper) for variant in VARIANTS.values() if variant.paper}
 
 
@@ -207,6 +219,24 @@ for _variant in (
         "mtsac_clip", "SAC-MT-with-clip", "mtsac", overrides={"q_loss_clip": 2000}, paper={"MT10": 85.9, "MT20": 65.5}
     ),
     Variant("mtsacte", "Ours", "mtsacte", paper={"MT10": 89.3, "MT20": 70.1}),
+    # Gradient surgery on the shared actor (and on the critic when it is shared); no MT20 number is published.
+    # c = 0.5: the CAGrad authors' Meta-World agent config (Cranial-XIX/CAGrad, mtrl/mtrl_files/cagrad_state_sac.yaml).
+    Variant(
+        "mtsac_pcgrad",
+        "PCGrad",
+        "mtsac",
+        overrides={"gradient_surgery": "pcgrad"},
+        paper={"MT10": 72.0},
+        paper_source=_CAGRAD_TABLE3,
+    ),
+    Variant(
+        "mtsac_cagrad",
+        "CAGrad",
+        "mtsac",
+        overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5},
+        paper={"MT10": 83.0},
+        paper_source=_CAGRAD_TABLE3,
+    ),
     Variant("mtsacte_novae", "Ours-VAE", "mtsacte", overrides={"use_vae": False}, ablation_of="mtsacte"),
     Variant("mtsacte_noclip", "Ours-clip", "mtsacte", overrides={"q_loss_clip": None}, ablation_of="mtsacte"),
     Variant("mtsacte_nobestbatch", "Ours-bestbatch", "mtsacte", overrides={"use_topk": False}, ablation_of="mtsacte"),
@@ -222,6 +252,7 @@ __all__ = [
     "ablation_labels",
     "algo_classes",
     "label_of",
+    "paper_sources",
     "paper_table1",
     "register_variant",
     "unregister_variant",

@@ -23,6 +23,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
+from sb3_mtte.common.gradient_surgery import assign_flat_gradient, check_gradient_surgery, surgery_gradient
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
@@ -62,6 +63,10 @@ class MTSAC(OffPolicyAlgorithm):
     :param target_update_interval: gradient steps between target updates.
     :param critic_arch: ``"per_task"`` (one twin Q per task, the paper's setting) or ``"shared"``.
     :param q_loss_clip: V_clip of Eq. 16; None = plain soft Bellman loss (Eq. 15).
+    :param gradient_surgery: None (minimise sum_i w_i L_i), ``"pcgrad"`` (Yu et al. 2020) or ``"cagrad"``
+        (Liu et al. 2021): the update of the shared actor, and of the critic when ``critic_arch="shared"``, follows
+        the method's combination of the per-task gradients.
+    :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
     :param action_noise: optional exploration noise.
     :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
     :param replay_buffer_kwargs: its keyword arguments.
@@ -102,6 +107,8 @@ class MTSAC(OffPolicyAlgorithm):
         target_update_interval: int = 1,
         critic_arch: str = "per_task",
         q_loss_clip: float | None = None,
+        gradient_surgery: str | None = None,
+        cagrad_c: float = 0.5,
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -114,6 +121,7 @@ class MTSAC(OffPolicyAlgorithm):
         _init_setup_model: bool = True,
     ) -> None:
         check_q_loss_clip(q_loss_clip)
+        check_gradient_surgery(gradient_surgery, cagrad_c)
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]
@@ -143,6 +151,8 @@ class MTSAC(OffPolicyAlgorithm):
         self.task_names: list[str] = get_task_names(self.env) if self.env is not None else []
         self.critic_arch = critic_arch
         self.q_loss_clip = q_loss_clip
+        self.gradient_surgery = gradient_surgery
+        self.cagrad_c = cagrad_c
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.target_update_interval = target_update_interval
@@ -297,6 +307,8 @@ class MTSAC(OffPolicyAlgorithm):
         :param task_weights: ``(N,)`` weights of the tasks (ones).
         :return: the loss that was minimised.
         """
+        if self.gradient_surgery is not None and self.critic_arch == "shared":
+            return self._surgery_step(self.critic.optimizer, "critic loss", task_losses, task_weights)
         return self._weighted_step(self.critic.optimizer, "critic loss", task_losses, task_weights)
 
     def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
@@ -307,7 +319,23 @@ class MTSAC(OffPolicyAlgorithm):
         :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`task_weights_for_policy`).
         :return: the loss that was minimised.
         """
+        if self.gradient_surgery is not None:
+            return self._surgery_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
         return self._weighted_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
+
+    def _surgery_step(
+        self, optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
+    ) -> th.Tensor:
+        """One step of ``optimizer`` along the PCGrad / CAGrad combination of the per-task gradients of its
+        parameters; returns ``sum_i w_i L_i`` (for the logs)."""
+        loss = (task_weights * task_losses).sum()
+        check_finite(name, loss)
+        params = [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
+        direction = surgery_gradient(self.gradient_surgery, task_losses, task_weights, params, self.cagrad_c)
+        optimizer.zero_grad()
+        assign_flat_gradient(params, direction)
+        optimizer.step()
+        return loss.detach()
 
     @staticmethod
     def _weighted_step(

@@ -1,0 +1,245 @@
+"""PCGrad and CAGrad: the maths against plain loops and brute force, and the update they put into MTSAC."""
+
+import itertools
+
+import numpy as np
+import pytest
+import torch as th
+
+from sb3_mtte import MTSAC, make_mt_env
+from sb3_mtte.common.gradient_surgery import (
+    cagrad_coefficients,
+    cagrad_dual_objective,
+    pcgrad_coefficients,
+    pcgrad_orders,
+    per_task_gradients,
+)
+from sb3_mtte.experiments.results import table1
+from sb3_mtte.experiments.variants import VARIANTS
+
+CONFLICTING_3 = np.array([[1.0, 0.2, 0.0], [-0.8, 1.0, 0.3], [0.1, -1.0, 0.5]])
+
+
+def loop_pcgrad(grads: list[np.ndarray], orders: np.ndarray) -> list[np.ndarray]:
+    """Algorithm 1 of Yu et al. (2020), one task and one other task at a time."""
+    projected = []
+    for i, g in enumerate(grads):
+        g_pc = g.copy()
+        for j in orders[i]:
+            dot = float(g_pc @ grads[j])
+            if dot < 0:
+                g_pc = g_pc - dot / float(grads[j] @ grads[j]) * grads[j]
+        projected.append(g_pc)
+    return projected
+
+
+def pcgrad_by_gram(grads: np.ndarray, orders: np.ndarray) -> np.ndarray:
+    return pcgrad_coefficients(grads @ grads.T, orders) @ grads
+
+
+# ------------------------------------------------------------------------------------------------------ PCGrad
+@pytest.mark.parametrize("grads", [np.array([[1.0, 0.0], [-1.0, 1.0]]), CONFLICTING_3])
+def test_pcgrad_equals_the_loop_of_algorithm_1_in_the_same_order(grads):
+    generator = th.Generator().manual_seed(0)
+    for _ in range(5):
+        orders = pcgrad_orders(len(grads), generator)
+        np.testing.assert_allclose(pcgrad_by_gram(grads, orders), np.stack(loop_pcgrad(list(grads), orders)))
+
+
+def test_pcgrad_orders_are_random_permutations_of_the_other_tasks():
+    generator = th.Generator().manual_seed(0)
+    seen = set()
+    for _ in range(50):
+        orders = pcgrad_orders(3, generator)
+        for i, row in enumerate(orders):
+            assert sorted(row.tolist()) == sorted(set(range(3)) - {i})
+        seen.add(tuple(orders[0]))
+    assert seen == {(1, 2), (2, 1)}
+
+
+def test_pcgrad_order_matters_with_three_conflicting_tasks():
+    """Task 0's result depends on the order (which the random order is there for)."""
+    first = pcgrad_by_gram(CONFLICTING_3, np.array([[1, 2], [0, 2], [0, 1]]))
+    second = pcgrad_by_gram(CONFLICTING_3, np.array([[2, 1], [0, 2], [0, 1]]))
+    assert not np.allclose(first[0], second[0])
+
+
+def test_pcgrad_of_two_conflicting_tasks_by_hand():
+    """g1 = (1, 0), g2 = (-1, 1): g1 . g2 = -1, so g1^PC = g1 + g2 / 2 = (0.5, 0.5) and g2^PC = g2 + g1 = (0, 1);
+    each is orthogonal to the other task's original gradient."""
+    grads = np.array([[1.0, 0.0], [-1.0, 1.0]])
+    projected = pcgrad_by_gram(grads, np.array([[1], [0]]))
+    np.testing.assert_allclose(projected, [[0.5, 0.5], [0.0, 1.0]])
+    assert projected[0] @ grads[1] >= -1e-12 and projected[1] @ grads[0] >= -1e-12
+
+
+def test_pcgrad_each_projection_leaves_no_conflict_with_the_gradient_it_was_projected_on():
+    """After the projection of g_i^PC on task j's original gradient, g_i^PC . g_j >= 0 (Algorithm 1); with random
+    gradients, at every step of every task's order."""
+    rng = np.random.default_rng(0)
+    generator = th.Generator().manual_seed(1)
+    for _ in range(20):
+        grads = rng.normal(size=(4, 6))
+        orders = pcgrad_orders(4, generator)
+        for i in range(4):
+            for length in range(1, 4):
+                g_pc = pcgrad_by_gram(grads, orders[:, :length])[i]
+                assert g_pc @ grads[orders[i, length - 1]] >= -1e-10
+
+
+def test_pcgrad_leaves_agreeing_gradients_unchanged():
+    grads = np.array([[1.0, 0.5, 0.0], [0.2, 1.0, 0.1], [0.3, 0.0, 1.0]])
+    assert (grads @ grads.T >= 0).all()
+    np.testing.assert_array_equal(pcgrad_by_gram(grads, pcgrad_orders(3)), grads)
+
+
+# ------------------------------------------------------------------------------------------------------ CAGrad
+def simplex_grid(n_tasks: int, steps: int) -> np.ndarray:
+    points = [p for p in itertools.product(range(steps + 1), repeat=n_tasks - 1) if sum(p) <= steps]
+    return np.array([[*p, steps - sum(p)] for p in points], dtype=float) / steps
+
+
+@pytest.mark.parametrize("grads", [np.array([[1.0, 0.0], [-0.6, 1.0]]), CONFLICTING_3[:, :2], CONFLICTING_3])
+@pytest.mark.parametrize("c", [0.2, 0.5, 0.9])
+def test_cagrad_solves_its_dual_as_a_grid_search_over_the_simplex(grads, c):
+    n_tasks = len(grads)
+    gram, weights = grads @ grads.T, np.full(n_tasks, 1.0 / n_tasks)
+    coefficients = cagrad_coefficients(gram, weights, c)
+    p = (coefficients - weights) / (coefficients - weights).sum()  # the dual solution: d = g0 + lambda g_p
+    grid = simplex_grid(n_tasks, 400 if n_tasks == 2 else 200)
+    best = min(cagrad_dual_objective(q, gram, weights, c) for q in grid)
+    assert cagrad_dual_objective(p, gram, weights, c) <= best + 1e-9
+    assert cagrad_dual_objective(p, gram, weights, c) >= best - 1e-3 * np.abs(best) - 1e-6
+
+
+@pytest.mark.parametrize("grads", [np.array([[1.0, 0.0], [-0.6, 1.0]]), CONFLICTING_3[:, :2]])
+@pytest.mark.parametrize("c", [0.2, 0.5, 0.9])
+def test_cagrad_direction_maximises_the_worst_improvement_in_the_ball(grads, c):
+    """The primal problem in 2-D: d on the ball ||d - g0|| <= c ||g0|| with the largest min_i g_i . d, by a grid over
+    the ball; CAGrad's d satisfies the constraint and attains that maximum."""
+    n_tasks = len(grads)
+    weights = np.full(n_tasks, 1.0 / n_tasks)
+    d = cagrad_coefficients(grads @ grads.T, weights, c) @ grads
+    g0 = weights @ grads
+    radius = c * np.linalg.norm(g0)
+    assert np.linalg.norm(d - g0) <= radius * (1 + 1e-9)
+    angles = np.linspace(0, 2 * np.pi, 20001)
+    radii = np.linspace(0, 1, 41)[:, None]
+    ball = g0 + radius * radii[..., None] * np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    best = (ball @ grads.T).min(axis=-1).max()
+    worst_improvement = (grads @ d).min()
+    resolution = 1e-3 * radius * np.linalg.norm(grads, axis=1).max()  # of the grid over the ball
+    assert best - 1e-9 <= worst_improvement <= best + resolution
+
+
+def test_cagrad_of_agreeing_gradients_moves_along_g0_and_of_zero_gradients_is_zero():
+    grads = np.array([[1.0, 0.0], [1.0, 0.0]])
+    np.testing.assert_allclose(cagrad_coefficients(grads @ grads.T, np.full(2, 0.5), 0.5) @ grads, [1.5, 0.0])
+    assert not cagrad_coefficients(np.zeros((2, 2)), np.full(2, 0.5), 0.5).any()
+
+
+# ------------------------------------------------------------------------------------------- through the model
+def small_model(**kwargs):
+    env = make_mt_env("toy-conflict", seed=0)
+    return MTSAC(
+        "MlpPolicy",
+        env,
+        learning_starts=100,
+        batch_size=16,
+        seed=0,
+        device="cpu",
+        policy_kwargs={"net_arch": [16, 16]},
+        **kwargs,
+    )
+
+
+def test_per_task_gradients_equal_a_loop_of_backward_passes():
+    net = th.nn.Sequential(th.nn.Linear(3, 8), th.nn.Tanh(), th.nn.Linear(8, 2))
+    x = th.randn(4, 5, 3)
+    losses = (net(x) ** 2).mean(dim=(1, 2))
+    params = list(net.parameters())
+    loop = [th.cat([g.flatten() for g in th.autograd.grad(loss, params, retain_graph=True)]) for loss in losses]
+    th.testing.assert_close(per_task_gradients(losses, params), th.stack(loop))
+
+
+class RecordingMTSAC(MTSAC):
+    """Records the per-task losses, the parameters and the gradients of every optimizer step it makes."""
+
+    def _surgery_step(self, optimizer, name, task_losses, task_weights):
+        params = [p for group in optimizer.param_groups for p in group["params"]]
+        loop = [th.autograd.grad(task_losses[i], params, retain_graph=True) for i in range(self.n_tasks)]
+        loop = np.stack([th.cat([g.flatten() for g in grads]).double().numpy() for grads in loop])
+        rng_state = th.get_rng_state()
+        before = [p.detach().clone() for p in params]
+        result = super()._surgery_step(optimizer, name, task_losses, task_weights)
+        grad = [p.grad.clone() for p in params]
+        weights = task_weights.double().numpy()
+        self.records[name] = {
+            "loop": loop,
+            "w": weights,
+            "rng": rng_state,
+            "before": before,
+            "params": params,
+            "grad": grad,
+        }
+        return result
+
+
+@pytest.mark.parametrize("method", ["pcgrad", "cagrad"])
+@pytest.mark.parametrize("critic_arch", ["per_task", "shared"])
+def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic_arch):
+    """The gradient in ``.grad`` before Adam's step is the method's combination of per-task gradients from a loop of
+    backward passes, and the actor's parameter change is Adam's first step on it; the critic is surgered too when
+    shared, not when per task (its tasks share no parameter)."""
+    model = small_model(gradient_surgery=method, critic_arch=critic_arch, learning_rate=1e-3)
+    model.learn(800)  # by then the last task's actor gradient conflicts with the others'
+    model.records = {}
+    model.__class__ = RecordingMTSAC
+    fresh_adam = th.optim.Adam(model.actor.parameters(), lr=1e-3)
+    model.actor.optimizer = fresh_adam
+    model.train(1, 16)
+    assert ("critic loss" in model.records) == (critic_arch == "shared")
+    for record in model.records.values():
+        grads, weights = record["loop"], record["w"]  # 1/N for the actor, ones for the critic
+        if method == "pcgrad":
+            rng = th.get_rng_state()
+            th.set_rng_state(record["rng"])
+            orders = pcgrad_orders(model.n_tasks)
+            th.set_rng_state(rng)
+            expected = weights @ np.stack(loop_pcgrad(list(grads), orders))
+        else:
+            expected = cagrad_coefficients(grads @ grads.T, weights, 0.5) @ grads / 1.25
+        applied = th.cat([g.flatten() for g in record["grad"]]).double().numpy()
+        np.testing.assert_allclose(applied, expected, rtol=1e-4, atol=1e-7)
+        assert np.linalg.norm(expected - weights @ grads) > 1e-3 * np.linalg.norm(expected)
+    record = model.records["actor loss"]
+    for before, param, grad in zip(record["before"], record["params"], record["grad"]):
+        th.testing.assert_close(param.detach(), before - 1e-3 * grad / (grad.abs() + 1e-8), rtol=1e-5, atol=1e-7)
+
+
+def test_without_surgery_the_update_is_unchanged():
+    """gradient_surgery=None takes the weighted-sum step: the same parameters as a model built without the argument."""
+    first = small_model().learn(800)
+    second = small_model(gradient_surgery=None).learn(800)
+    third = small_model(gradient_surgery="pcgrad").learn(800)
+    assert not th.equal(
+        first.policy.state_dict()["actor.net.0.weight"], third.policy.state_dict()["actor.net.0.weight"]
+    )
+    for key, value in first.policy.state_dict().items():
+        assert th.equal(value, second.policy.state_dict()[key]), key
+
+
+def test_bad_gradient_surgery_arguments_fail_clearly():
+    with pytest.raises(ValueError, match="gradient_surgery"):
+        small_model(gradient_surgery="mgda")
+    for c in (0.0, 1.0, -0.5, float("nan")):
+        with pytest.raises(ValueError, match="cagrad_c"):
+            small_model(gradient_surgery="cagrad", cagrad_c=c)
+
+
+def test_registry_keys_and_published_numbers_with_their_source():
+    assert VARIANTS["mtsac_pcgrad"].defining_hyperparams() == {"policy": "MlpPolicy", "gradient_surgery": "pcgrad"}
+    assert VARIANTS["mtsac_cagrad"].overrides == {"gradient_surgery": "cagrad", "cagrad_c": 0.5}
+    table = table1({"MT10-cpu": {}, "MT20-smoke": {}})
+    assert "| PCGrad | 72.0% | - |" in table and "| CAGrad | 83.0% | - |" in table
+    assert "CAGrad: Liu et al. 2021 (CAGrad), Table 3" in table
