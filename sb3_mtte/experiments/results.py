@@ -8,7 +8,7 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.experiments.runs import Run, label_order, success_curve
-from sb3_mtte.experiments.variants import paper_table1
+from sb3_mtte.experiments.variants import paper_table1, published_results
 
 
 def final_success(run: Run) -> float | None:
@@ -70,4 +70,10 @@ def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> 
         for label, values in paper_table1().items():
             paper.append(f"| {label} | " + " | ".join(f"{values[b]:.1f}%" for b in shown) + " |")
         text += "\n\nThe paper's Table 1 (Meta-World v2, 5 seeds), for reference:\n\n" + "\n".join(paper)
+        published = ["| Algorithm | " + " | ".join(shown) + " | source |", "|:--|" + "--:|" * len(shown) + ":--|"]
+        for label, (values, source) in published_results().items():
+            cells = " | ".join(f"{values[b]:.1f}%" if b in values else "-" for b in shown)
+            published.append(f"| {label} | {cells} | {source} |")
+        if len(published) > 2:
+            text += "\n\nPublished by the methods' authors, for reference:\n\n" + "\n".join(published)
     return text + "\n"

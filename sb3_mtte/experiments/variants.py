@@ -5,7 +5,7 @@ A variant is a zoo key (``--algo``), its algorithm family (class and base hyperp
 tables, and the paper's numbers. Zoo keys, labels, the order of Table 1, the benchmark's variants and the
 hyperparameters of each key come from :data:`VARIANTS`. Adding a variant is one call::
 
-    register_variant(Variant("mtsac_moore", "MOORE", "mtsac", policy="MoorePolicy", overrides={"n_experts": 4}))
+    register_variant(Variant("mtsac_mh_tau", "SAC-MT-MH-tau", "mtsac", "MultiHeadPolicy", overrides={"tau": 0.02}))
 
 (plus its policy or algorithm class when it is new).
 """
@@ -82,8 +82,11 @@ class Variant:
     :param policy: the policy (hyperparameter ``policy``).
     :param overrides: hyperparameters that make it this variant, set in every env entry of the family's file.
     :param env_overrides: further hyperparameters per env entry, keyed by a pattern of the entry (``"toy-*"``).
-    :param paper: the paper's Table 1 success rate (%) per benchmark.
+    :param paper: the paper's Table 1 success rate (%) per benchmark, or, with ``published``, the success rate its
+        authors published.
     :param ablation_of: key of the variant it ablates (Fig. 7), if any.
+    :param published: where ``paper``'s numbers come from when they are not the paper's Table 1 (source, table,
+        Meta-World version).
     """
 
     key: str
@@ -94,6 +97,7 @@ class Variant:
     env_overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
     paper: Mapping[str, float] = field(default_factory=dict)
     ablation_of: str | None = None
+    published: str | None = None
 
     @property
     def algorithm(self) -> type[BaseAlgorithm]:
@@ -113,6 +117,14 @@ class Variant:
 
 
 _SOFT_MODULAR = "actor_kwargs=dict(n_layers={0}, n_modules={0}, module_size={1})"
+# MOORE, Meta-World MT10: k = 4 experts (metaworld-algorithms config/nn.py MOOREConfig, the authors' values: "4 for
+# MT10 and 6 for MT50"), MOORE in actor and critic (metaworld-algorithms examples/multi_task/moore_mt10.py), widths
+# 2 x 400 (the package's Meta-World nets; metaworld-algorithms' width is 400).
+_MOORE = "dict(net_arch=[{0}, {0}], n_experts=4)"
+# PaCo, Meta-World MT10: K = 5 parameter sets, compositional actor and critic, reset threshold 3e3 on a task's loss
+# (TToTMooN/paco-mtrl paco/examples/metaworld_mt10_paco_conf.py: num_of_param_set, use_compositional_encoding,
+# critic_use_compositional_encoding, task_loss_threshold), widths 2 x 400 (their hidden sizes live outside that repo).
+_PACO = "dict(net_arch=[{0}, {0}], n_parameter_sets=5, task_loss_threshold=3000.0)"
 
 VARIANTS: dict[str, Variant] = {}
 """Zoo key -> variant, in the row order of Table 1 and then Fig. 7."""
@@ -160,7 +172,16 @@ def ablation_labels() -> list[str]:
 
 def paper_table1() -> dict[str, dict[str, float]]:
     """The paper's Table 1 (%, Meta-World v2): label -> benchmark -> success, for the variants it reports."""
-    return {variant.label: dict(variant.paper) for variant in VARIANTS.values() if variant.paper}
+    return {
+        variant.label: dict(variant.paper) for variant in VARIANTS.values() if variant.paper and not variant.published
+    }
+
+
+def published_results() -> dict[str, tuple[dict[str, float], str]]:
+    """Success (%) published by the authors of methods outside the paper: label -> (benchmark -> success, source)."""
+    return {
+        variant.label: (dict(variant.paper), variant.published) for variant in VARIANTS.values() if variant.published
+    }
 
 
 def label_of(algo: str, hyperparams: Mapping[str, Any] | None = None) -> str:
@@ -207,6 +228,24 @@ for _variant in (
         "mtsac_clip", "SAC-MT-with-clip", "mtsac", overrides={"q_loss_clip": 2000}, paper={"MT10": 85.9, "MT20": 65.5}
     ),
     Variant("mtsacte", "Ours", "mtsacte", paper={"MT10": 89.3, "MT20": 70.1}),
+    Variant(
+        "mtsac_moore",
+        "MOORE",
+        "mtsac",
+        "MOOREPolicy",
+        env_overrides={"MT*": {"policy_kwargs": _MOORE.format(400)}, "toy-*": {"policy_kwargs": _MOORE.format(64)}},
+        paper={"MT10": 88.7},
+        published="Hendawi et al. (ICLR 2024), MT10 results table (MT10-rand, Meta-World v2)",
+    ),
+    Variant(
+        "mtsac_paco",
+        "PaCo",
+        "mtsac",
+        "PaCoPolicy",
+        env_overrides={"MT*": {"policy_kwargs": _PACO.format(400)}, "toy-*": {"policy_kwargs": _PACO.format(64)}},
+        paper={"MT10": 85.4},
+        published="Sun et al. (NeurIPS 2022), MT10 results table (MT10-rand, Meta-World v2)",
+    ),
     Variant("mtsacte_novae", "Ours-VAE", "mtsacte", overrides={"use_vae": False}, ablation_of="mtsacte"),
     Variant("mtsacte_noclip", "Ours-clip", "mtsacte", overrides={"q_loss_clip": None}, ablation_of="mtsacte"),
     Variant("mtsacte_nobestbatch", "Ours-bestbatch", "mtsacte", overrides={"use_topk": False}, ablation_of="mtsacte"),
@@ -223,6 +262,7 @@ __all__ = [
     "algo_classes",
     "label_of",
     "paper_table1",
+    "published_results",
     "register_variant",
     "unregister_variant",
     "variant_labels",
