@@ -15,7 +15,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP
-from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy
+from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_weights_
 
 GRAM_SCHMIDT_EPS = 1e-8
 
@@ -69,9 +69,7 @@ class MooreNetwork(nn.Module):
         self.n_copies, self.n_tasks, self.n_experts = n_copies, n_tasks, n_experts
         width = hidden_sizes[-1]
         self.experts = EnsembleMLP(n_copies * n_experts, in_features, hidden_sizes[:-1], width, activation_fn)
-        self.task_weights = nn.Parameter(th.empty(n_copies, n_tasks, n_experts))
-        bound = (6.0 / n_tasks) ** 0.5  # He-uniform of a linear layer on the one-hot (fan-in N)
-        nn.init.uniform_(self.task_weights, -bound, bound)
+        self.task_weights = nn.Parameter(init_task_weights_(th.empty(n_copies, n_tasks, n_experts)))
         self.heads = EnsembleLinear(n_copies * n_tasks, width, out_features)
 
     def orthonormal_experts(self, x: th.Tensor) -> th.Tensor:

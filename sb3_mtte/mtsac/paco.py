@@ -17,7 +17,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy
+from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_weights_
 
 
 def compose_parameters(parameter_sets: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
@@ -84,11 +84,7 @@ class PaCoNetwork(nn.Module):
             bound = 1.0 / math.sqrt(weight.shape[-2])
             nn.init.uniform_(weight, -bound, bound)
             nn.init.uniform_(bias, -bound, bound)
-        self.init_task_weights(self.task_weights.data)
-
-    def init_task_weights(self, out: th.Tensor) -> th.Tensor:
-        bound = math.sqrt(6.0 / self.n_tasks)
-        return nn.init.uniform_(out, -bound, bound)
+        init_task_weights_(self.task_weights.data)
 
     def task_parameters(self) -> list[tuple[th.Tensor, th.Tensor]]:
         """Per layer, every task's (weight ``(C, N, in, out)``, bias ``(C, N, 1, out)``)."""
@@ -185,7 +181,7 @@ class PaCoPolicy(TaskConditionedPolicy):
             if n_kept:
                 net.task_weights.copy_(interpolated_task_weights(net.task_weights, collapsed, mix))
             else:
-                net.init_task_weights(net.task_weights)
+                init_task_weights_(net.task_weights)
         if self.structured_critic:
             self.critic_target.q_net.task_weights[:, collapsed] = self.critic.q_net.task_weights[:, collapsed]
         self.collapse_counts += collapsed.long()

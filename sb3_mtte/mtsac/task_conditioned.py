@@ -28,6 +28,12 @@ NetworkFactory = Callable[[int, int, int, list[int], int, type[nn.Module]], nn.M
 """``(n_copies, in_features, n_tasks, hidden_sizes, out_features, activation_fn) -> network``."""
 
 
+def init_task_weights_(task_weights: th.Tensor) -> th.Tensor:
+    """He-uniform init of ``(C, N, K)`` per-task weights, as a linear layer on the one-hot (fan-in N), in place."""
+    bound = (6.0 / task_weights.shape[-2]) ** 0.5
+    return nn.init.uniform_(task_weights, -bound, bound)
+
+
 class TaskConditionedActor(MultiTaskActor):
     """A tanh-Gaussian actor whose whole network is one task-conditioned network on the state.
 
