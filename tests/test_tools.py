@@ -174,7 +174,7 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
         assert path.stat().st_size > (1000 if path.suffix == ".png" else 100), path
     table = (out / "table1.md").read_text()
     assert table in capsys.readouterr().out
-    ours_table = table.split("The paper's")[0]
+    ours_table = table.split("Published success")[0]
     rows = {line.split("|")[1].strip(): line for line in ours_table.splitlines() if line.startswith("| ")}
     ours = np.mean([0.85, final_eval(runs / "mtsacte" / "MT10_2")])
     assert f"{100 * ours:.1f} ±" in rows["Ours"] and "(n=2)" in rows["Ours"]

@@ -75,6 +75,8 @@ TABLE1 = {
     "mtsac_mt": ("MlpPolicy", None),
     "mtsac_mh": ("MultiHeadPolicy", None),
     "mtsac_softmod": ("SoftModularPolicy", None),
+    "mtsac_moore": ("MOOREPolicy", None),
+    "mtsac_paco": ("PaCoPolicy", None),
     "mtsac_clip": ("MlpPolicy", 2000),
     "mtsacte": ("MlpPolicy", 2000),
     "mtsacte_novae": ("MlpPolicy", 2000),

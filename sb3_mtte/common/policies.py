@@ -153,5 +153,13 @@ class MultiTaskPolicy(BasePolicy):
         """
         raise NotImplementedError
 
+    def task_loss_mask(self, task_losses: th.Tensor) -> th.Tensor:
+        """``(N,)`` factor of every task's losses in this update, from its ``(N,)`` critic losses (all ones here; a
+        policy that masks collapsed tasks, PaCo, overrides it)."""
+        return th.ones_like(task_losses)
+
+    def after_update(self) -> None:
+        """Called after every update's optimizer steps (PaCo resets the tasks it masked)."""
+
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)

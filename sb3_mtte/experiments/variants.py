@@ -5,7 +5,7 @@ A variant is a zoo key (``--algo``), its algorithm family (class and base hyperp
 tables, and the paper's numbers. Zoo keys, labels, the order of Table 1, the benchmark's variants and the
 hyperparameters of each key come from :data:`VARIANTS`. Adding a variant is one call::
 
-    register_variant(Variant("mtsac_moore", "MOORE", "mtsac", policy="MoorePolicy", overrides={"n_experts": 4}))
+    register_variant(Variant("mtsac_mh_tau", "SAC-MT-MH-tau", "mtsac", "MultiHeadPolicy", overrides={"tau": 0.02}))
 
 (plus its policy or algorithm class when it is new).
 """
@@ -119,6 +119,14 @@ _CAGRAD_TABLE3 = (
     "Meta-World of Feb 2021 that their README pins (commit d9a75c4), not Meta-World v3"
 )
 _SOFT_MODULAR = "actor_kwargs=dict(n_layers={0}, n_modules={0}, module_size={1})"
+# MOORE, Meta-World MT10: k = 4 experts (metaworld-algorithms config/nn.py MOOREConfig, the authors' values: "4 for
+# MT10 and 6 for MT50"), MOORE in actor and critic (metaworld-algorithms examples/multi_task/moore_mt10.py), widths
+# 2 x 400 (the package's Meta-World nets; metaworld-algorithms' width is 400).
+_MOORE = "dict(net_arch=[{0}, {0}], n_experts=4)"
+# PaCo, Meta-World MT10: K = 5 parameter sets, compositional actor and critic, reset threshold 3e3 on a task's loss
+# (TToTMooN/paco-mtrl paco/examples/metaworld_mt10_paco_conf.py: num_of_param_set, use_compositional_encoding,
+# critic_use_compositional_encoding, task_loss_threshold), widths 2 x 400 (their hidden sizes live outside that repo).
+_PACO = "dict(net_arch=[{0}, {0}], n_parameter_sets=5, task_loss_threshold=3000.0)"
 
 VARIANTS: dict[str, Variant] = {}
 """Zoo key -> variant, in the row order of Table 1 and then Fig. 7."""
@@ -236,6 +244,24 @@ for _variant in (
         overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5},
         paper={"MT10": 83.0},
         paper_source=_CAGRAD_TABLE3,
+    ),
+    Variant(
+        "mtsac_moore",
+        "MOORE",
+        "mtsac",
+        "MOOREPolicy",
+        env_overrides={"MT*": {"policy_kwargs": _MOORE.format(400)}, "toy-*": {"policy_kwargs": _MOORE.format(64)}},
+        paper={"MT10": 88.7},
+        paper_source="Hendawi et al. (ICLR 2024), MT10 results table (MT10-rand, Meta-World v2; not yet checked against the paper)",
+    ),
+    Variant(
+        "mtsac_paco",
+        "PaCo",
+        "mtsac",
+        "PaCoPolicy",
+        env_overrides={"MT*": {"policy_kwargs": _PACO.format(400)}, "toy-*": {"policy_kwargs": _PACO.format(64)}},
+        paper={"MT10": 85.4},
+        paper_source="Sun et al. (NeurIPS 2022), MT10 results table (MT10-rand, Meta-World v2; not yet checked against the paper)",
     ),
     Variant("mtsacte_novae", "Ours-VAE", "mtsacte", overrides={"use_vae": False}, ablation_of="mtsacte"),
     Variant("mtsacte_noclip", "Ours-clip", "mtsacte", overrides={"q_loss_clip": None}, ablation_of="mtsacte"),

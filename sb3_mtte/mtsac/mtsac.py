@@ -26,6 +26,8 @@ from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, res
 from sb3_mtte.common.gradient_surgery import assign_flat_gradient, check_gradient_surgery, surgery_gradient
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
+from sb3_mtte.mtsac.moore import MOOREPolicy
+from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
 from sb3_mtte.openmp import warn_if_spinning
 
@@ -48,7 +50,8 @@ class MTSAC(OffPolicyAlgorithm):
     minimise ``sum_i w_i L_i``; a gradient-level multi-task method (PCGrad, CAGrad, ...) overrides one of them.
 
     :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
-        (SAC-soft-modular) or ``"IndependentPolicy"`` (SAC-Ind), or a policy class.
+        (SAC-soft-modular), ``"IndependentPolicy"`` (SAC-Ind), ``"MOOREPolicy"`` (MOORE) or ``"PaCoPolicy"`` (PaCo),
+        or a policy class.
     :param env: multi-task VecEnv, sub-env i is task i (see :func:`sb3_mtte.make_mt_env`).
     :param learning_rate: Adam learning rate (delta), a float or schedule.
     :param buffer_size: replay capacity in transitions over all tasks.
@@ -84,6 +87,8 @@ class MTSAC(OffPolicyAlgorithm):
         "MultiHeadPolicy": MultiHeadPolicy,
         "SoftModularPolicy": SoftModularPolicy,
         "IndependentPolicy": IndependentPolicy,
+        "MOOREPolicy": MOOREPolicy,
+        "PaCoPolicy": PaCoPolicy,
     }
     min_tasks: ClassVar[int] = 1
     """Smallest task count N the algorithm accepts (1: a single task with the one-hot ``[1.0]`` is SAC)."""
@@ -268,11 +273,13 @@ class MTSAC(OffPolicyAlgorithm):
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
         ent_coef, stats = self._entropy_step(log_prob)
         critic_losses = self._critic_losses(replay_data, ent_coef)
-        self._critic_step(critic_losses, th.ones_like(critic_losses))
+        kept = self.policy.task_loss_mask(critic_losses.detach())
+        self._critic_step(critic_losses, kept)
         stats["critic_loss"] = critic_losses.detach()
         min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
         actor_losses = -sac_task_objective(log_prob, min_q_pi, ent_coef)
-        stats["actor_loss"] = self._actor_step(actor_losses, self.task_weights_for_policy()).detach()
+        stats["actor_loss"] = self._actor_step(actor_losses, self.task_weights_for_policy() * kept).detach()
+        self.policy.after_update()
         return stats
 
     def _entropy_step(self, log_prob: th.Tensor) -> tuple[th.Tensor, dict[str, th.Tensor]]:
