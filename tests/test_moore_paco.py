@@ -32,8 +32,8 @@ def loop_gram_schmidt(vectors: list[th.Tensor]) -> list[th.Tensor]:
     for v in vectors:
         w = v.clone()
         for u in basis:
-            w = w - float(v @ u) * u
-        basis.append(w / (float(w.norm()) + 1e-8))
+            w = w - (v @ u) * u
+        basis.append(w / (w.norm() + 1e-8))
     return basis
 
 
@@ -120,6 +120,21 @@ def test_moore_task_combination_and_heads_equal_a_loop_over_tasks():
     for c in range(2):
         for b, task in enumerate(task_ids.tolist()):
             assert th.allclose(gathered[c, b], loop_moore(net, c, task, rows[c, b]), atol=1e-10)
+
+
+def test_moore_gradients_equal_those_of_the_plain_loop():
+    """The forward never builds the basis (it combines the raw expert outputs with w^T T); its gradients must still
+    be those of Gram-Schmidt followed by the task combination."""
+    th.manual_seed(3)
+    net = MooreNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_experts=4).double()
+    x = th.randn(2, 3, 4, 5, dtype=th.float64)
+    params = list(net.parameters())
+    fast = th.autograd.grad(net(x).square().sum(), params)
+    loop = sum(
+        loop_moore(net, c, task, row).square().sum() for c in range(2) for task in range(3) for row in x[c, task]
+    )
+    for got, expected in zip(fast, th.autograd.grad(loop, params)):
+        assert th.allclose(got, expected, atol=1e-10)
 
 
 # -------------------------------------------------------------------------------------------------- PaCo

@@ -20,23 +20,54 @@ from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_wei
 GRAM_SCHMIDT_EPS = 1e-8
 
 
+def gram_schmidt_coefficients(gram: th.Tensor, eps: float = GRAM_SCHMIDT_EPS) -> th.Tensor:
+    """Classical Gram-Schmidt of k vectors V, written as the lower-triangular T with U = T V, from G = V V^T alone.
+
+    u_1 = v_1 / |v_1|,  u_i = w_i / |w_i| with w_i = v_i - sum_{j<i} <v_i, u_j> u_j: row i of T holds w_i's
+    coefficients over V (so <v_i, u_j> = (T G)[j, i] and |w_i|^2 = a G a^T), divided by |w_i| + eps. Only k x k
+    matrices are touched, so the d-dimensional vectors are read twice (G, then T V) instead of once per projection.
+    Exact in exact arithmetic; in floating point a norm loses accuracy when w_i is nearly zero (vectors nearly
+    collinear), as |w_i|^2 comes from a difference of Gram entries.
+
+    :param gram: ``(..., k, k)`` Gram matrices.
+    :param eps: added to every norm (a zero vector stays zero).
+    :return: ``(..., k, k)`` lower-triangular coefficients.
+    """
+    k = gram.shape[-1]
+    unit = th.eye(k, dtype=gram.dtype, device=gram.device)
+    rows: list[th.Tensor] = []
+    for i in range(k):
+        a = unit[i].expand(gram.shape[:-1])
+        if rows:
+            done = th.stack(rows, dim=-2)  # (..., i, k): u_j = done[j] V
+            dots = (done @ gram[..., i : i + 1]).squeeze(-1)  # <v_i, u_j>
+            a = a - (dots.unsqueeze(-2) @ done).squeeze(-2)
+        squared_norm = (a.unsqueeze(-2) @ gram @ a.unsqueeze(-1)).squeeze(-1)
+        rows.append(a / (squared_norm.clamp_min(0).sqrt() + eps))
+    return th.stack(rows, dim=-2)
+
+
 def gram_schmidt(vectors: th.Tensor, eps: float = GRAM_SCHMIDT_EPS) -> th.Tensor:
     """Classical Gram-Schmidt over the second-to-last axis, batched over the leading axes.
-
-    u_1 = v_1 / |v_1|,  u_i = w_i / |w_i| with w_i = v_i - sum_{j<i} <v_i, u_j> u_j.
 
     :param vectors: ``(..., k, d)`` k vectors per batch entry, k <= d.
     :param eps: added to every norm (a zero vector stays zero).
     :return: ``(..., k, d)`` orthonormal vectors, the same order and span.
     """
-    basis: list[th.Tensor] = []
-    for i in range(vectors.shape[-2]):
-        v = vectors[..., i, :]
-        if basis:
-            done = th.stack(basis, dim=-2)
-            v = v - th.einsum("...j,...jd->...d", th.einsum("...d,...jd->...j", v, done), done)
-        basis.append(v / (v.norm(dim=-1, keepdim=True) + eps))
-    return th.stack(basis, dim=-2)
+    return gram_schmidt_coefficients(vectors @ vectors.transpose(-1, -2), eps) @ vectors
+
+
+def orthonormal_combination(vectors: th.Tensor, weights: th.Tensor) -> th.Tensor:
+    """sum_j weights[j] u_j with u the Gram-Schmidt basis of ``vectors``, as (weights^T T) V: the basis is never
+    built.
+
+    :param vectors: ``(..., k, d)``.
+    :param weights: ``(..., k)``, broadcast against the leading axes of ``vectors``.
+    :return: ``(..., d)``.
+    """
+    coefficients = gram_schmidt_coefficients(vectors @ vectors.transpose(-1, -2))
+    combined = weights.unsqueeze(-2) @ coefficients  # (..., 1, k)
+    return (combined @ vectors).squeeze(-2)
 
 
 class MooreNetwork(nn.Module):
@@ -72,25 +103,27 @@ class MooreNetwork(nn.Module):
         self.task_weights = nn.Parameter(init_task_weights_(th.empty(n_copies, n_tasks, n_experts)))
         self.heads = EnsembleLinear(n_copies * n_tasks, width, out_features)
 
-    def orthonormal_experts(self, x: th.Tensor) -> th.Tensor:
-        """:param x: ``(C, B, in)``. :return: ``(C, B, k, d)``, orthonormal over k for every row."""
+    def expert_outputs(self, x: th.Tensor) -> th.Tensor:
+        """:param x: ``(C, B, in)``. :return: ``(C, B, k, d)``, the raw outputs of the k experts for every row."""
         c, k = self.n_copies, self.n_experts
         rows = x.unsqueeze(1).expand(c, k, *x.shape[1:]).reshape(c * k, *x.shape[1:])
-        outputs = self.experts(rows).view(c, k, x.shape[1], -1).transpose(1, 2)
-        return gram_schmidt(outputs)
+        return self.experts(rows).view(c, k, x.shape[1], -1).transpose(1, 2)
+
+    def orthonormal_experts(self, x: th.Tensor) -> th.Tensor:
+        """:param x: ``(C, B, in)``. :return: ``(C, B, k, d)``, orthonormal over k for every row."""
+        return gram_schmidt(self.expert_outputs(x))
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """:param x: ``(C, N, L, in)`` task-major. :return: ``(C, N, L, out)``."""
         c, n, length = x.shape[:3]
-        basis = self.orthonormal_experts(x.reshape(c, n * length, -1)).view(c, n, length, self.n_experts, -1)
-        features = th.tanh(th.einsum("cnlkd,cnk->cnld", basis, self.task_weights))
+        experts = self.expert_outputs(x.reshape(c, n * length, -1)).view(c, n, length, self.n_experts, -1)
+        features = th.tanh(orthonormal_combination(experts, self.task_weights.unsqueeze(2)))
         return self.heads(features.reshape(c * n, length, -1)).view(c, n, length, -1)
 
     def forward_gather(self, x: th.Tensor, task_ids: th.Tensor) -> th.Tensor:
         """:param x: ``(C, B, in)``. :param task_ids: ``(B,)`` task of every row. :return: ``(C, B, out)``."""
         c, rows = x.shape[:2]
-        basis = self.orthonormal_experts(x)
-        features = th.tanh(th.einsum("cbkd,cbk->cbd", basis, self.task_weights[:, task_ids]))
+        features = th.tanh(orthonormal_combination(self.expert_outputs(x), self.task_weights[:, task_ids]))
         heads = (th.arange(c, device=x.device).unsqueeze(1) * self.n_tasks + task_ids).reshape(-1)
         return self.heads.forward_gather(features.reshape(c * rows, -1), heads).view(c, rows, -1)
 
