@@ -279,3 +279,14 @@ def test_mt10_smoke_run(policy):
     model.learn(300)
     assert model.num_timesteps == 300 and model._n_updates >= 15
     assert model.replay_buffer.sample(4).observations.shape == (10, 4, 49)
+
+
+def test_polyak_update_moves_every_target_by_tau_towards_its_parameter():
+    from sb3_mtte.common.utils import polyak_update
+
+    params = [th.tensor([1.0, -2.0]), th.tensor([[0.5]])]
+    targets = [th.tensor([3.0, 2.0]), th.tensor([[-0.5]])]
+    polyak_update(params, targets, 0.25)  # 0.75 * target + 0.25 * param
+    assert th.allclose(targets[0], th.tensor([2.5, 1.0])) and th.allclose(targets[1], th.tensor([[-0.25]]))
+    with pytest.raises(ValueError):
+        polyak_update(params, targets[:1], 0.25)

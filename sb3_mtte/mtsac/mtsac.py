@@ -18,14 +18,20 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.utils import polyak_update
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
 from sb3_mtte.common.gradient_surgery import assign_flat_gradient, check_gradient_surgery, surgery_gradient
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
-from sb3_mtte.common.utils import check_finite, check_multitask_env, check_one_hot, get_task_names, task_log_key
+from sb3_mtte.common.utils import (
+    check_finite,
+    check_multitask_env,
+    check_one_hot,
+    get_task_names,
+    polyak_update,
+    task_log_key,
+)
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
