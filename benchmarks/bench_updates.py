@@ -22,6 +22,7 @@ import torch as th
 from stable_baselines3 import SAC
 from stable_baselines3.common.logger import Logger
 from stable_baselines3.common.vec_env import DummyVecEnv
+from torch.utils.flop_counter import FlopCounterMode
 
 from sb3_mtte import MTSAC, MTSACTE, __version__
 from sb3_mtte.experiments.variants import VARIANTS as REGISTERED_VARIANTS
@@ -98,6 +99,24 @@ def interleaved_medians(fns: dict[str, Callable[[], None]], repeats: int, warmup
     return {label: statistics.median(values) for label, values in times.items()}
 
 
+def matmul_probes(total_batch: int, device: str) -> dict[str, tuple[Callable[[], None], float]]:
+    """Dense ``torch.mm`` at the update's own layer shape and at 2048^2: the machine's matmul peak, timed beside the
+    updates. Label -> (function, GFLOP of one call)."""
+    probes = {}
+    for label, (m, k, n) in {"mm-update-shape": (total_batch, 400, 400), "mm-2048": (2048, 2048, 2048)}.items():
+        a, b = th.randn(m, k, device=device), th.randn(k, n, device=device)
+        probes[label] = (lambda a=a, b=b: th.mm(a, b), 2 * m * k * n / 1e9)
+    return probes
+
+
+def update_gflop(update: Callable[[], None]) -> float:
+    """Matmul GFLOP of one update (after a first one), counted by ``torch.utils.flop_counter``."""
+    update()
+    with FlopCounterMode(display=False) as counter:
+        update()
+    return counter.get_total_flops() / 1e9
+
+
 def quiet(model):
     model.set_logger(Logger(folder=None, output_formats=[]))
     return model
@@ -132,7 +151,10 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
     fill_buffer(te, rows)
     te._last_iteration_start = 0  # the every-step update alone: no recomputation is due at num_timesteps 0
     updates["MTSACTE-update"] = lambda: te.train(1, batch_per_task)
-    results = interleaved_medians(updates, repeats)
+    probes = matmul_probes(total_batch, device)
+    gflop = {label: update_gflop(fn) for label, fn in updates.items()}
+    results = interleaved_medians({**updates, **{label: fn for label, (fn, _) in probes.items()}}, repeats)
+    peak = {label: flop / results.pop(label) for label, (_, flop) in probes.items()}
 
     recomputations: dict[str, Callable[[], None]] = {}
     for estimator in ("virtual_step", "gradient_dot"):
@@ -161,6 +183,11 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
         "recompute_over_mtsac_update": {
             k: round(v / results["MTSAC-MT"], 2) for k, v in results.items() if "recompute" in k
         },
+        "per_task_over_shared_critic": round(results["MTSAC-MT"] / results["MTSAC-MT-shared-critic"], 3),
+        "matmul_peak_gflops": {k: round(v, 1) for k, v in peak.items()},
+        "update_gflop": {k: round(v, 2) for k, v in gflop.items()},
+        "achieved_gflops": {k: round(gflop[k] / results[k], 1) for k in gflop},
+        "fraction_of_peak": {k: round(gflop[k] / results[k] / max(peak.values()), 3) for k in gflop},
     }
     return report
 
