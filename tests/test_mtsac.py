@@ -290,3 +290,28 @@ def test_polyak_update_moves_every_target_by_tau_towards_its_parameter():
     assert th.allclose(targets[0], th.tensor([2.5, 1.0])) and th.allclose(targets[1], th.tensor([[-0.25]]))
     with pytest.raises(ValueError):
         polyak_update(params, targets[:1], 0.25)
+
+
+@pytest.mark.parametrize("cls", [MTSAC, MTSACTE])
+def test_the_actor_backward_pass_skips_the_critic_and_changes_no_number(cls):
+    """The critic is a constant of the actor loss: its weight gradients are not computed there. Training must be
+    bit-identical to the straightforward update, which lets them accumulate in .grad (the critic step zeroes them)."""
+    fast = small_model(cls=cls).learn(300)
+    plain = small_model(cls=cls)
+    plain.critic.requires_grad_ = lambda requires_grad=True: plain.critic  # the straightforward update
+    plain.learn(300)
+    for key, value in all_params(fast).items():
+        assert th.equal(value, all_params(plain)[key]), key
+    for model, changed in ((fast, False), (plain, True)):
+        after_critic_step = []
+        critic_step = model._critic_step
+
+        def recording_critic_step(*args, model=model, critic_step=critic_step, record=after_critic_step):
+            loss = critic_step(*args)
+            record.extend(p.grad.clone() for p in model.critic.parameters())
+            return loss
+
+        model._critic_step = recording_critic_step
+        model.train(1, 16)
+        after_update = [p.grad for p in model.critic.parameters()]
+        assert any(not th.equal(a, b) for a, b in zip(after_critic_step, after_update)) == changed

@@ -282,7 +282,9 @@ class MTSAC(OffPolicyAlgorithm):
         kept = self.policy.task_loss_mask(critic_losses.detach())
         self._critic_step(critic_losses, kept)
         stats["critic_loss"] = critic_losses.detach()
+        self.critic.requires_grad_(False)  # constants of the actor loss: no gradient for them in its backward pass
         min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
+        self.critic.requires_grad_(True)
         actor_losses = -sac_task_objective(log_prob, min_q_pi, ent_coef)
         stats["actor_loss"] = self._actor_step(actor_losses, self.task_weights_for_policy() * kept).detach()
         self.policy.after_update()
