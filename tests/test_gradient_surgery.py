@@ -13,6 +13,7 @@ from sb3_mtte.common.gradient_surgery import (
     pcgrad_coefficients,
     pcgrad_orders,
     per_task_gradients,
+    per_task_gradients_of_rows,
 )
 from sb3_mtte.experiments.results import table1
 from sb3_mtte.experiments.variants import VARIANTS
@@ -139,10 +140,10 @@ def test_cagrad_of_agreeing_gradients_moves_along_g0_and_of_zero_gradients_is_ze
 
 
 # ------------------------------------------------------------------------------------------- through the model
-def small_model(**kwargs):
+def small_model(policy: str = "MlpPolicy", **kwargs):
     env = make_mt_env("toy-conflict", seed=0)
     return MTSAC(
-        "MlpPolicy",
+        policy,
         env,
         learning_starts=100,
         batch_size=16,
@@ -162,16 +163,32 @@ def test_per_task_gradients_equal_a_loop_of_backward_passes():
     th.testing.assert_close(per_task_gradients(losses, params), th.stack(loop))
 
 
+def test_per_task_gradients_of_rows_equal_a_loop_of_backward_passes():
+    """One backward pass to the shared network's outputs, then a vmap over tasks: the same as N backward passes,
+    with a loss that mixes each task's rows non-linearly and a head after the network (as the actor's tanh-Gaussian
+    and critic)."""
+    th.manual_seed(0)
+    net = th.nn.Sequential(th.nn.Linear(3, 8), th.nn.ReLU(), th.nn.Linear(8, 2)).double()
+    x = th.randn(4, 5, 3, dtype=th.float64)
+    head = th.randn(4, 1, 2, dtype=th.float64)  # a per-task function of the outputs
+    out = net(x)
+    losses = (th.tanh(out) * head).sum(-1).logsumexp(-1) + out.pow(2).mean(dim=(1, 2))
+    params = list(net.parameters())
+    loop = [th.cat([g.flatten() for g in th.autograd.grad(loss, params, retain_graph=True)]) for loss in losses]
+    th.testing.assert_close(per_task_gradients_of_rows(net, x, out, losses), th.stack(loop), rtol=1e-12, atol=1e-12)
+
+
 class RecordingMTSAC(MTSAC):
     """Records the per-task losses, the parameters and the gradients of every optimizer step it makes."""
 
-    def _surgery_step(self, optimizer, name, task_losses, task_weights):
+    def _surgery_step(self, optimizer, name, task_losses, task_weights, actor=False):
         params = [p for group in optimizer.param_groups for p in group["params"]]
         loop = [th.autograd.grad(task_losses[i], params, retain_graph=True) for i in range(self.n_tasks)]
         loop = np.stack([th.cat([g.flatten() for g in grads]).double().numpy() for grads in loop])
         rng_state = th.get_rng_state()
         before = [p.detach().clone() for p in params]
-        result = super()._surgery_step(optimizer, name, task_losses, task_weights)
+        self.fast_path = self.actor.kept_output is not None
+        result = super()._surgery_step(optimizer, name, task_losses, task_weights, actor)
         grad = [p.grad.clone() for p in params]
         weights = task_weights.double().numpy()
         self.records[name] = {
@@ -185,19 +202,29 @@ class RecordingMTSAC(MTSAC):
         return result
 
 
-@pytest.mark.parametrize("method", ["pcgrad", "cagrad"])
-@pytest.mark.parametrize("critic_arch", ["per_task", "shared"])
-def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic_arch):
+@pytest.mark.parametrize(
+    "method, critic_arch, policy",
+    [
+        ("pcgrad", "per_task", "MlpPolicy"),
+        ("cagrad", "per_task", "MlpPolicy"),
+        ("pcgrad", "shared", "MlpPolicy"),
+        ("cagrad", "shared", "MlpPolicy"),
+        ("pcgrad", "per_task", "MultiHeadPolicy"),
+    ],
+)
+def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic_arch, policy):
     """The gradient in ``.grad`` before Adam's step is the method's combination of per-task gradients from a loop of
     backward passes, and the actor's parameter change is Adam's first step on it; the critic is surgered too when
-    shared, not when per task (its tasks share no parameter)."""
-    model = small_model(gradient_surgery=method, critic_arch=critic_arch, learning_rate=1e-3)
+    shared, not when per task (its tasks share no parameter). SAC-MT's actor takes the one-backward-pass gradients,
+    a multi-head actor (per-task heads) the generic ones."""
+    model = small_model(policy, gradient_surgery=method, critic_arch=critic_arch, learning_rate=1e-3)
     model.learn(800)  # by then the last task's actor gradient conflicts with the others'
     model.records = {}
     model.__class__ = RecordingMTSAC
     fresh_adam = th.optim.Adam(model.actor.parameters(), lr=1e-3)
     model.actor.optimizer = fresh_adam
     model.train(1, 16)
+    assert model.fast_path == (policy == "MlpPolicy")
     assert ("critic loss" in model.records) == (critic_arch == "shared")
     for record in model.records.values():
         grads, weights = record["loop"], record["w"]  # 1/N for the actor, ones for the critic

@@ -2,8 +2,9 @@
 
 Both methods turn the per-task gradients G (N x P, row i = grad of task i's loss) into one update direction that is a
 linear combination of the rows, d = a^T G. Everything they decide is decided on the N x N Gram matrix G G^T, so the
-pure functions below work on the Gram matrix and return the coefficients a (N,); :func:`surgery_gradient` computes G
-with one batched backward pass and applies d = a^T G.
+pure functions below work on the Gram matrix and return the coefficients a (N,); :func:`surgery_direction` applies
+d = a^T G to the G of :func:`per_task_gradients_of_rows` (a shared network, linear in N) or
+:func:`per_task_gradients` (any parameters, N backward passes).
 """
 
 from __future__ import annotations
@@ -12,6 +13,8 @@ import math
 
 import numpy as np
 import torch as th
+from torch import nn
+from torch.func import functional_call, grad, vmap
 
 GRADIENT_SURGERY_METHODS = ("pcgrad", "cagrad")
 
@@ -150,21 +153,44 @@ def per_task_gradients(task_losses: th.Tensor, params: list[th.Tensor]) -> th.Te
     return th.cat(flat, dim=1)
 
 
-def surgery_gradient(
-    method: str, task_losses: th.Tensor, task_weights: th.Tensor, params: list[th.Tensor], cagrad_c: float = 0.5
+def per_task_gradients_of_rows(
+    network: nn.Module, inputs: th.Tensor, outputs: th.Tensor, task_losses: th.Tensor
 ) -> th.Tensor:
-    """The update direction of PCGrad or CAGrad for ``params``, flattened (P,).
+    """``(N, P)`` gradients of the N task losses w.r.t. ``network``'s parameters, for a network that every task
+    shares and that maps each row of a task-major batch on its own (an MLP on state + one-hot).
+
+    Task i's loss then reaches the parameters only through task i's rows of ``outputs``, so one backward pass of
+    sum_i L_i to ``outputs`` gives every task's cotangent, and one ``vmap`` over the task axis of the
+    vector-Jacobian product of the network turns them into per-task gradients (each weight gradient one batched
+    matmul over tasks): the cost of about one backward pass, where :func:`per_task_gradients` pays N of them.
+
+    :param network: the shared network (called on ``(L, in)`` rows).
+    :param inputs: ``(N, L, in)`` what ``network`` was called on.
+    :param outputs: ``(N, L, out)`` what it returned, with the graph from there to ``task_losses``.
+    :param task_losses: ``(N,)``.
+    :return: ``(N, P)``, columns in the order of ``network.parameters()``.
+    """
+    (cotangents,) = th.autograd.grad(task_losses.sum(), outputs)
+    params = {name: p.detach() for name, p in network.named_parameters()}
+
+    def task_gradient(task_inputs: th.Tensor, task_cotangent: th.Tensor) -> dict[str, th.Tensor]:
+        return grad(lambda p: (functional_call(network, p, (task_inputs,)) * task_cotangent).sum())(params)
+
+    grads = vmap(task_gradient)(inputs.detach(), cotangents)
+    return th.cat([grads[name].reshape(task_losses.shape[0], -1) for name in params], dim=1)
+
+
+def surgery_direction(method: str, grads: th.Tensor, task_weights: th.Tensor, cagrad_c: float = 0.5) -> th.Tensor:
+    """The update direction of PCGrad or CAGrad, flattened (P,), from the per-task gradients.
 
     PCGrad: sum_i w_i g_i^PC (the average of the projected gradients for MTSAC's w_i = 1/N). CAGrad: d / (1 + c^2)
     with d from :func:`cagrad_coefficients` and g0 = sum_i w_i g_i.
 
     :param method: ``"pcgrad"`` or ``"cagrad"``.
-    :param task_losses: ``(N,)`` per-task losses with their graph.
+    :param grads: ``(N, P)`` per-task gradients (:func:`per_task_gradients`, :func:`per_task_gradients_of_rows`).
     :param task_weights: ``(N,)`` weights w_i of the tasks in the average.
-    :param params: the parameters the tasks share.
     :param cagrad_c: CAGrad's c.
     """
-    grads = per_task_gradients(task_losses, params)
     gram = (grads @ grads.T).detach().to("cpu", th.float64).numpy()
     weights = task_weights.detach().to("cpu", th.float64).numpy()
     if method == "pcgrad":

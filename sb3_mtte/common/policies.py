@@ -39,6 +39,16 @@ class MultiTaskActor(nn.Module):
     def __init__(self, state_dim: int, action_dim: int, n_tasks: int) -> None:
         super().__init__()
         self.state_dim, self.action_dim, self.n_tasks = state_dim, action_dim, n_tasks
+        self.keep_output = False
+        """Keep the last differentiable forward pass's ``(obs, dist_params)`` in :attr:`kept_output` (read by
+        gradient surgery, see :attr:`shared_rows_network`)."""
+        self.kept_output: tuple[th.Tensor, th.Tensor] | None = None
+
+    @property
+    def shared_rows_network(self) -> nn.Module | None:
+        """The network :meth:`dist_params` is, if all its parameters are shared by the tasks and it maps every row
+        on its own (then per-task gradients cost one backward pass); None otherwise."""
+        return None
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         """Raw output (mean and log-std of the Gaussian before the tanh).
@@ -55,7 +65,10 @@ class MultiTaskActor(nn.Module):
         :param obs: ``(N, L, obs_dim)``.
         :param noise: ``(N, L, A)`` standard normal noise, or None to draw it.
         """
-        return squashed_gaussian(self.dist_params(obs), noise)
+        params = self.dist_params(obs)
+        if self.keep_output and params.requires_grad:
+            self.kept_output = (obs, params)
+        return squashed_gaussian(params, noise)
 
     def act(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
         """Actions ``(B, A)`` for observations ``(B, obs_dim)`` in any order (tasks read from the one-hot)."""

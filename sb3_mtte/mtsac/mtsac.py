@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
-from sb3_mtte.common.gradient_surgery import assign_flat_gradient, check_gradient_surgery, surgery_gradient
+from sb3_mtte.common.gradient_surgery import check_gradient_surgery
 from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
 from sb3_mtte.common.utils import (
     check_finite,
@@ -35,6 +35,7 @@ from sb3_mtte.common.utils import (
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
+from sb3_mtte.mtsac.surgery import GradientSurgeryMixin
 from sb3_mtte.openmp import warn_if_spinning
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
@@ -45,7 +46,7 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
         raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
 
 
-class MTSAC(OffPolicyAlgorithm):
+class MTSAC(GradientSurgeryMixin, OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
@@ -185,6 +186,7 @@ class MTSAC(OffPolicyAlgorithm):
         ).to(self.device)
         self._convert_train_freq()
         self._create_aliases()
+        self._setup_gradient_surgery()
         if self.env is not None:
             self._setup_replay_buffer()
         self._setup_entropy_coef()
@@ -335,22 +337,8 @@ class MTSAC(OffPolicyAlgorithm):
         :return: the loss that was minimised.
         """
         if self.gradient_surgery is not None:
-            return self._surgery_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
+            return self._surgery_step(self.actor.optimizer, "actor loss", task_losses, task_weights, actor=True)
         return self._weighted_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
-
-    def _surgery_step(
-        self, optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
-    ) -> th.Tensor:
-        """One step of ``optimizer`` along the PCGrad / CAGrad combination of the per-task gradients of its
-        parameters; returns ``sum_i w_i L_i`` (for the logs)."""
-        loss = (task_weights * task_losses).sum()
-        check_finite(name, loss)
-        params = [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
-        direction = surgery_gradient(self.gradient_surgery, task_losses, task_weights, params, self.cagrad_c)
-        optimizer.zero_grad()
-        assign_flat_gradient(params, direction)
-        optimizer.step()
-        return loss.detach()
 
     @staticmethod
     def _weighted_step(

@@ -30,6 +30,10 @@ class SharedActor(MultiTaskActor):
         super().__init__(state_dim, action_dim, n_tasks)
         self.net = mlp(state_dim + n_tasks, net_arch, 2 * action_dim, activation_fn)
 
+    @property
+    def shared_rows_network(self) -> nn.Module:
+        return self.net
+
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         return self.net(obs)
 
