@@ -249,7 +249,10 @@ def test_logs_per_task_success_and_critic_loss(tmp_path):
 
 # ------------------------------------------------------------------------------------------------ learning
 @pytest.mark.parametrize(
-    "policy, critic_arch", [(policy, "per_task") for policy in POLICIES] + [("MlpPolicy", "shared")]
+    "policy, critic_arch",
+    [("MlpPolicy", "per_task")]
+    + [pytest.param(policy, "per_task", marks=pytest.mark.slow) for policy in POLICIES[1:]]
+    + [pytest.param("MlpPolicy", "shared", marks=pytest.mark.slow)],
 )
 def test_every_variant_learns_the_toy_conflict_env(policy, critic_arch):
     """Budget: 12k env steps (3k vector steps, 4 tasks), 2x64 nets, L=64; stated bar: mean success >= 0.75."""

@@ -512,7 +512,7 @@ def test_conflicting_task_has_largest_mu_and_smallest_weight():
 
 
 # ========================================================================================================== learning
-@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("seed", [0, pytest.param(1, marks=pytest.mark.slow), pytest.param(2, marks=pytest.mark.slow)])
 def test_training_singles_out_the_conflicting_task(seed, monkeypatch):
     """toy-conflict with the zoo's settings for 4k env steps (19 iterations of 10 recomputations, each on its own
     top-K batch): averaged over every recomputation of the run, mu is largest and w smallest for the conflicting task
