@@ -69,9 +69,8 @@ class MTSACTE(MTSAC):
         mean task gradients; linear in N).
     :param use_vae: include the VAE term of Eq. 14.
     :param use_topk: draw representation batches from the top-K episodes (else from the main buffer).
-    :param nt_chunk_size: ``vmap`` chunk over the virtual parameter sets theta^k: None evaluates all at once, 1 one
-        theta^k per batched pass over all tasks; ``"auto"``: 1 on CPU (measured 2.3x faster there at N=10), None on
-        GPUs.
+    :param nt_chunk_size: how many virtual parameter sets theta^k one batched pass over all tasks evaluates: None
+        all at once, 1 one at a time; ``"auto"``: 1 on CPU (the least memory, as fast there), None on GPUs.
     :param nt_measure: how mu is read from the transfer matrices, beyond the paper when not the default.
         ``"per_batch"`` (the paper, Eq. 6): each recomputation counts the signs of its own batch's matrix.
         ``"mean"``: the j-th recomputation of an iteration counts the signs of the mean of the iteration's first j

@@ -1,8 +1,9 @@
 """Vectorised evaluation of the per-task objectives, the negative-transfer matrix and the J^rep gradient.
 
 Everything is a pure function of the parameters (``torch.func``): per-task gradients are one ``vmap(grad)``
-over the task axis, the N x N evaluation one ``vmap`` over the stacked virtual parameters theta^k, and the
-meta-gradient of J^NT w.r.t. phi differentiates through the inner gradient (second order). Batches are
+over the task axis, the N x N evaluation plain batched matmuls with the stacked virtual parameters theta^k (the
+actor's K weight sets on all rows, each task's critics on the K actions of its rows), and the meta-gradient of J^NT
+w.r.t. phi differentiates through the inner gradient (second order). Batches are
 task-major ``(N, L, ...)`` and every comparison uses the same batch and the same noise (common random numbers).
 """
 
@@ -11,9 +12,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch as th
+from torch import nn
 from torch.func import functional_call, grad, vjp, vmap
 
-from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.losses import sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     negative_transfer_objective,
@@ -55,7 +57,7 @@ class TaskObjectives:
     :param policy: the MTSACTE policy (its actor, encoder and critics are read, never modified).
     :param batch: the shared batch and noise.
     :param ent_coef: ``(N,)`` beta_i.
-    :param chunk_size: ``vmap`` chunk over theta^k (None: all at once; 1: one theta^k per batched pass).
+    :param chunk_size: theta^k per batched pass of :meth:`after_virtual_steps` (None: all at once).
     """
 
     def __init__(
@@ -64,7 +66,8 @@ class TaskObjectives:
         self.policy, self.batch, self.chunk_size = policy, batch, chunk_size
         n, c = policy.n_tasks, policy.n_critics
         self.state = batch.obs[..., : policy.state_dim]
-        self.q_params = {k: v.detach().view(n, c, *v.shape[1:]) for k, v in policy.critic.q_net.named_parameters()}
+        self.q_members = {k: v.detach() for k, v in policy.critic.q_net.named_parameters()}
+        self.q_params = {k: v.view(n, c, *v.shape[1:]) for k, v in self.q_members.items()}
         self.ent_coef = ent_coef.detach()
 
     def theta(self) -> Params:
@@ -95,16 +98,53 @@ class TaskObjectives:
         return ({k: v[tasks] for k, v in q_params.items()}, *(x[tasks] for x in rest))
 
     def all_tasks(self, theta: Params, z: th.Tensor) -> th.Tensor:
-        """``(N,)``: J_i(theta) for every task i."""
-        return vmap(self._single, in_dims=(None, 0, 0, 0, 0, 0))(theta, *self._task_args(z, None))
+        """``(N,)``: J_i(theta) for every task i (the same arithmetic as one row of :meth:`after_virtual_steps`)."""
+        return self._stacked_objectives({k: v.unsqueeze(0) for k, v in theta.items()}, z)[0]
 
     def gradients(self, theta: Params, z: th.Tensor, tasks: th.Tensor | None = None) -> Params:
         """grad_theta J_k(theta) for every task k (or the given ones), stacked on a leading axis."""
         return vmap(grad(self._single), in_dims=(None, 0, 0, 0, 0, 0))(theta, *self._task_args(z, tasks))
 
     def after_virtual_steps(self, thetas: Params, z: th.Tensor) -> th.Tensor:
-        """``(K, N)``: row k holds J_i(theta^k) for every task i, for stacked parameters theta^k."""
-        return vmap(self.all_tasks, in_dims=(0, None), chunk_size=self.chunk_size)(thetas, z)
+        """``(K, N)``: row k holds J_i(theta^k) for every task i, for stacked parameters theta^k, evaluated
+        ``chunk_size`` theta^k at a time (all at once for None)."""
+        n_sets = next(iter(thetas.values())).shape[0]
+        size = n_sets if self.chunk_size is None else self.chunk_size
+        chunks = [{k: v[start : start + size] for k, v in thetas.items()} for start in range(0, n_sets, size)]
+        return th.cat([self._stacked_objectives(chunk, z) for chunk in chunks])
+
+    def _stacked_objectives(self, thetas: Params, z: th.Tensor) -> th.Tensor:
+        """``(K, N)`` J_i(theta^k) as plain batched tensor code: the actor with its K weight sets on all N x L rows
+        (one batched matmul per layer), each task's twin critics on the K actions of its rows (one batched matmul
+        per layer over the N x n_critics members)."""
+        policy, (n, length) = self.policy, self.state.shape[:2]
+        rows = policy.actor_input(self.state, z).reshape(1, n * length, -1)
+        dist = stacked_sequential(policy.actor.net, thetas, rows, prefix="net.")
+        n_sets = dist.shape[0]
+        action, log_prob = squashed_gaussian(dist.view(n_sets, n, length, -1), self.batch.action_noise)
+        q_in = th.cat([self.state.expand(n_sets, *self.state.shape), action], dim=-1).transpose(0, 1)
+        q_in = q_in.reshape(n, 1, n_sets * length, -1).expand(n, policy.n_critics, -1, -1).flatten(0, 1)
+        q = functional_call(policy.critic.q_net, self.q_members, (q_in,)).view(n, policy.n_critics, n_sets, length)
+        return sac_task_objective(log_prob, q.min(dim=1).values.transpose(0, 1), self.ent_coef)
+
+
+def stacked_sequential(network: nn.Sequential, params: Params, x: th.Tensor, prefix: str = "") -> th.Tensor:
+    """``network`` (linear layers and parameter-free modules) applied with K stacked parameter sets at once.
+
+    :param network: the module whose layout the parameters follow.
+    :param params: ``{prefix + "<index>.weight": (K, out, in), prefix + "<index>.bias": (K, out)}``.
+    :param x: ``(K, B, in)``, or ``(1, B, in)`` for the same rows under every set.
+    :return: ``(K, B, out)``.
+    """
+    for index, module in enumerate(network):
+        if isinstance(module, nn.Linear):
+            weight, bias = params[f"{prefix}{index}.weight"], params[f"{prefix}{index}.bias"]
+            x = th.baddbmm(bias.unsqueeze(1), x.expand(weight.shape[0], *x.shape[1:]), weight.transpose(1, 2))
+        elif not any(True for _ in module.parameters()):
+            x = module(x)
+        else:
+            raise TypeError(f"stacked_sequential supports linear layers and parameter-free modules, got {module}.")
+    return x
 
 
 def virtual_parameters(theta: Params, grads: Params, step_size: float) -> Params:
@@ -126,9 +166,10 @@ def transfer_matrix(
     if estimator == "gradient_dot":
         flat = th.cat([g.flatten(1) for g in grads.values()], dim=1)
         return step_size * flat @ flat.T
-    before = objectives.all_tasks(theta, z)
-    after = objectives.after_virtual_steps(virtual_parameters(theta, grads, step_size), z)
-    return after - before.unsqueeze(0)
+    # theta itself is evaluated in the same stacked pass as the theta^k, so that alpha = 0 gives exactly 0.
+    thetas = {k: th.cat([theta[k].unsqueeze(0), v]) for k, v in virtual_parameters(theta, grads, step_size).items()}
+    values = objectives.after_virtual_steps(thetas, z)
+    return values[1:] - values[:1]
 
 
 def exact_nt_objective(objectives: TaskObjectives, theta: Params, z: th.Tensor, harmful: th.Tensor, step_size: float):
