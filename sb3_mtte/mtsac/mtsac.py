@@ -30,12 +30,12 @@ from sb3_mtte.common.utils import (
     check_one_hot,
     get_task_names,
     polyak_update,
-    task_log_key,
 )
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
 from sb3_mtte.mtsac.surgery import GradientSurgeryMixin
+from sb3_mtte.mtsac.task_logs import PerTaskLogMixin
 from sb3_mtte.openmp import warn_if_spinning
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
@@ -46,7 +46,7 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
         raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
 
 
-class MTSAC(GradientSurgeryMixin, OffPolicyAlgorithm):
+class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
@@ -351,35 +351,6 @@ class MTSAC(GradientSurgeryMixin, OffPolicyAlgorithm):
         loss.backward()
         optimizer.step()
         return loss
-
-    def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
-        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/actor_loss", float(stats["actor_loss"]))
-        self.logger.record("train/critic_loss", float(stats["critic_loss"].mean()))
-        self.logger.record("train/ent_coef", float(stats["ent_coef"].mean()))
-        if "ent_coef_loss" in stats:
-            self.logger.record("train/ent_coef_loss", float(stats["ent_coef_loss"]))
-        for i in range(self.n_tasks):
-            self.logger.record(task_log_key("train/critic_loss", i, self._task_name(i)), float(stats["critic_loss"][i]))
-
-    def _task_name(self, index: int) -> str | None:
-        return self.task_names[index] if index < len(self.task_names) else None
-
-    # ---------------------------------------------------------------------------------------------- logging
-    def _update_info_buffer(self, infos: list[dict[str, Any]], dones: np.ndarray | None = None) -> None:
-        super()._update_info_buffer(infos, dones)
-        if dones is None:
-            return
-        for index in np.flatnonzero(dones):
-            success = infos[index].get("is_success")
-            if success is not None:
-                self._task_success[infos[index].get("task_index", index)].append(float(success))
-
-    def dump_logs(self) -> None:
-        for i, successes in enumerate(getattr(self, "_task_success", [])):
-            if successes:
-                self.logger.record(task_log_key("rollout/success", i, self._task_name(i)), float(np.mean(successes)))
-        super().dump_logs()
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
