@@ -1,10 +1,12 @@
 """Throughput of one gradient update (and env stepping) for SB3's SAC, every MTSAC variant and MTSACTE.
 
 Prints one JSON object. Updates run on synthetic replay data of N tasks x L transitions (39-d state + one-hot,
-4-d actions, 2x400 nets: the Meta-World setting); every ratio compares timings taken in the same run.
+4-d actions, 2x400 nets by default, ``--net-arch``: the Meta-World setting); every ratio compares timings taken in
+the same run.
 
     python benchmarks/bench_updates.py --n-tasks 10 20 50 --device cpu
     python benchmarks/bench_updates.py --n-tasks 10 --env-steps 200   # + Meta-World MT10 vector steps/s
+    python benchmarks/bench_updates.py --n-tasks 10 --net-arch 400 400 400
 """
 
 from __future__ import annotations
@@ -122,7 +124,7 @@ def quiet(model):
     return model
 
 
-def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) -> dict:
+def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, net_arch: list[int]) -> dict:
     total_batch = n_tasks * batch_per_task
     rows = 4 * batch_per_task
     updates: dict[str, Callable[[], None]] = {}
@@ -131,7 +133,7 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
         SAC(
             "MlpPolicy",
             synthetic_env(n_tasks),
-            policy_kwargs={"net_arch": [400, 400]},
+            policy_kwargs={"net_arch": net_arch},
             buffer_size=rows * n_tasks,
             device=device,
             seed=0,
@@ -142,12 +144,29 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
 
     for label, (policy, kwargs) in VARIANTS.items():
         model = quiet(
-            MTSAC(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0, **kwargs)
+            MTSAC(
+                policy,
+                synthetic_env(n_tasks),
+                buffer_size=rows * n_tasks,
+                device=device,
+                seed=0,
+                policy_kwargs={"net_arch": net_arch},
+                **kwargs,
+            )
         )
         fill_buffer(model, rows)
         updates[label] = lambda m=model: m.train(1, batch_per_task)
 
-    te = quiet(MTSACTE("MlpPolicy", synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0))
+    te = quiet(
+        MTSACTE(
+            "MlpPolicy",
+            synthetic_env(n_tasks),
+            buffer_size=rows * n_tasks,
+            device=device,
+            seed=0,
+            policy_kwargs={"net_arch": net_arch},
+        )
+    )
     fill_buffer(te, rows)
     te._last_iteration_start = 0  # the every-step update alone: no recomputation is due at num_timesteps 0
     updates["MTSACTE-update"] = lambda: te.train(1, batch_per_task)
@@ -167,6 +186,7 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int) 
                 seed=0,
                 nt_estimator=estimator,
                 rep_gradient_steps=1,
+                policy_kwargs={"net_arch": net_arch},
             )
         )
         fill_buffer(model, rows)
@@ -209,6 +229,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--n-tasks", type=int, nargs="+", default=[10, 20, 50])
     parser.add_argument("--batch-per-task", type=int, default=128)
+    parser.add_argument("--net-arch", type=int, nargs="+", default=[400, 400], help="hidden widths of every network")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--repeats", type=int, default=15)
     parser.add_argument("--env-steps", type=int, default=0, help="vector steps of Meta-World to time (0: skip)")
@@ -226,11 +247,12 @@ def main(argv: list[str] | None = None) -> dict:
     report = {
         "device": device,
         "torch_threads": th.get_num_threads(),
+        "net_arch": args.net_arch,
         "versions": {"sb3_mtte": __version__, "torch": th.__version__, "python": platform.python_version()},
         "results": [],
     }
     for n_tasks in args.n_tasks:
-        entry = bench_n_tasks(n_tasks, args.batch_per_task, device, args.repeats)
+        entry = bench_n_tasks(n_tasks, args.batch_per_task, device, args.repeats, args.net_arch)
         seconds = entry["seconds"]
         recompute = seconds["MTSACTE-recompute-virtual_step"]
         env_step = 0.0
