@@ -13,7 +13,6 @@ import numpy as np
 import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
-from moviepy.video.io.ImageSequenceClip import ImageSequenceClip
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import StoreDict, get_model_path
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -175,6 +174,8 @@ def _write_videos(
     frames: list[list[np.ndarray]], tiled: list[np.ndarray], out_dir: Path, prefix: str, names: list[str], fps: int
 ) -> list[Path]:
     """Write one mp4 per task with frames (and the tiled one) and return their paths."""
+    from moviepy.video.io.ImageSequenceClip import ImageSequenceClip  # loads ffmpeg: only when writing videos
+
     out_dir.mkdir(parents=True, exist_ok=True)
     videos = {out_dir / f"{prefix}-{i:02d}_{short_task_name(names[i])}.mp4": f for i, f in enumerate(frames) if f}
     if tiled:
