@@ -1,7 +1,7 @@
 """Throughput of training processes that share the machine: one alone, then two side by side.
 
-Each worker is a fresh interpreter started the way users start scripts (no OpenMP variables of their own unless
-``--env`` gives some): it builds MTSAC (2 x 400, N = 10, batch 128 per task) on synthetic replay data, waits for a
+Each worker is a fresh interpreter started the way users start scripts (no OpenMP or malloc variables of their
+own unless a setting gives some): it builds MTSAC (2 x 400, N = 10, batch 128 per task) on synthetic replay data, waits for a
 common start time and counts updates for ``--seconds``. For every setting the benchmark reports updates/s of one
 process alone, of each of two processes started together, and each one's fraction of the solo figure; rounds
 alternate the settings so that drift of the machine hits them alike (medians over rounds).
@@ -11,7 +11,8 @@ alternate the settings so that drift of the machine hits them alike (medians ove
 
 A setting is ``label=VAR=value,VAR=value`` (``label=`` alone: no variables). ``default`` is the package's own
 behaviour; ``torch-first`` is the same with ``import torch`` before the package (library use); ``libgomp default``
-is the runtime's own spin count, the package's behaviour before it set one.
+is the runtime's own spin count, the package's behaviour before it set one; ``glibc malloc=SB3_MTTE_MALLOC=default``
+keeps glibc's malloc thresholds (the package's behaviour before it raised them).
 """
 
 from __future__ import annotations
@@ -25,7 +26,10 @@ import sys
 import time
 from pathlib import Path
 
-OPENMP_VARIABLES = ("OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "MKL_NUM_THREADS")
+PROCESS_VARIABLES = (
+    "OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "MKL_NUM_THREADS",
+    "SB3_MTTE_MALLOC", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_",
+)
 DEFAULT_SETTINGS = (
     "default=",
     "torch-first=",
@@ -61,7 +65,7 @@ def parse_setting(text: str) -> tuple[str, dict[str, str]]:
 
 
 def run_processes(label: str, variables: dict[str, str], count: int, seconds: float) -> list[float]:
-    env = {k: v for k, v in os.environ.items() if k not in OPENMP_VARIABLES}
+    env = {k: v for k, v in os.environ.items() if k not in PROCESS_VARIABLES}
     env.update(variables)
     start_at = time.time() + 10.0  # room for every worker to build its model first
     command = [sys.executable, __file__, "--worker", str(start_at), "--seconds", str(seconds)]

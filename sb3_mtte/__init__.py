@@ -1,8 +1,10 @@
 """sb3-mtte: multi-task SAC with a task embedding network, and the MTSAC baselines, for Stable-Baselines3."""
 
+from sb3_mtte.allocator import keep_freed_memory
 from sb3_mtte.openmp import set_spin_default
 
 set_spin_default()  # before torch loads its OpenMP runtime
+keep_freed_memory()
 
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer

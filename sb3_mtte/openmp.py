@@ -13,7 +13,7 @@ import os
 import sys
 import warnings
 
-SPIN_COUNT = "10000"
+SPIN_COUNT = "5000"
 USER_VARIABLES = ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")
 _state = {"applied": False, "torch_loaded_first": False}
 
