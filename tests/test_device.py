@@ -1,0 +1,42 @@
+"""``device="auto"`` picks CUDA when present, else the CPU; on a GPU machine every algorithm trains, saves and loads
+there (these CUDA tests run wherever a GPU is present)."""
+
+from __future__ import annotations
+
+import pytest
+import torch as th
+from conftest import small_model_kwargs
+
+from sb3_mtte import MTSAC, MTSACTE, make_mt_env
+
+CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+def test_auto_device_is_cuda_when_present_else_cpu() -> None:
+    model = MTSAC("MlpPolicy", make_mt_env("toy-conflict", seed=0), device="auto", policy_kwargs={"net_arch": [8]})
+    assert model.device.type == ("cuda" if th.cuda.is_available() else "cpu")
+
+
+@CUDA
+@pytest.mark.parametrize(
+    "cls, policy, kwargs",
+    [
+        (MTSAC, "MlpPolicy", {}),
+        (MTSAC, "MlpPolicy", {"gradient_surgery": "pcgrad"}),
+        (MTSAC, "MOOREPolicy", {}),
+        (MTSAC, "PaCoPolicy", {}),
+        (MTSACTE, "MlpPolicy", {}),
+    ],
+)
+def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict) -> None:
+    base = small_model_kwargs(device="cuda")
+    if cls is MTSAC:
+        base = {key: base[key] for key in ("learning_starts", "batch_size", "buffer_size", "seed", "device")}
+        base["policy_kwargs"] = {"net_arch": [16, 16]}
+    model = cls(policy, make_mt_env("toy-conflict", seed=0), **base, **kwargs)
+    model.learn(80)
+    assert all(p.device.type == "cuda" for p in model.policy.parameters())
+    model.save(tmp_path / "model")
+    loaded = cls.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cuda")
+    obs = model.get_env().reset()
+    assert (loaded.predict(obs, deterministic=True)[0] == model.predict(obs, deterministic=True)[0]).all()
