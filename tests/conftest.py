@@ -15,6 +15,7 @@ from gymnasium import spaces
 from stable_baselines3.common.vec_env import DummyVecEnv
 from torch import nn
 
+from sb3_mtte.common.relu_mlp import fused_relu_mlp
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.transfer import RepresentationBatch, TaskObjectives
 
@@ -166,6 +167,7 @@ def loop_transfer(policy, batch, ent_coef, step_size: float) -> tuple[th.Tensor,
     return before, matrix
 
 
+@fused_relu_mlp(False)  # second derivatives: the layer-by-layer graph
 def loop_task_gradients(policy, batch, ent_coef, z: list[th.Tensor], create_graph: bool = False) -> list[th.Tensor]:
     """grad_theta J_i, flattened, for every task i."""
     params = list(policy.actor.parameters())
@@ -203,6 +205,7 @@ def loop_vae_objective(policy, batch) -> th.Tensor:
     return th.stack(terms).mean()
 
 
+@fused_relu_mlp(False)  # second derivatives: the layer-by-layer graph
 def loop_rep_gradients(
     policy,
     batch,

@@ -7,6 +7,8 @@ import math
 import torch as th
 from torch import nn
 
+from sb3_mtte.common.relu_mlp import fused_relu_mlp_applies, relu_mlp
+
 
 class EnsembleLinear(nn.Module):
     """``n_members`` independent linear layers evaluated with a single batched matmul.
@@ -73,6 +75,9 @@ class EnsembleMLP(nn.Module):
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """:param x: ``(E, B, in)``. :return: ``(E, B, out)``."""
+        if type(self.activation) is nn.ReLU and fused_relu_mlp_applies(x, stacked=True):
+            weights, biases = zip(*((layer.weight, layer.bias) for layer in self.layers))
+            return relu_mlp(x, list(weights), list(biases), stacked=True, relu_last=False)
         for layer in self.layers[:-1]:
             x = self.activation(layer(x))
         return self.layers[-1](x)
@@ -84,7 +89,20 @@ class EnsembleMLP(nn.Module):
         return self.layers[-1].forward_gather(x, members)
 
 
-def mlp(in_features: int, hidden_sizes: list[int], out_features: int, activation_fn: type[nn.Module]) -> nn.Sequential:
+class MLP(nn.Sequential):
+    """``nn.Sequential`` of ``nn.Linear`` layers, each but possibly the last followed by an activation (the
+    state-dict keys of ``nn.Sequential``); with ReLU it runs as one node of :func:`relu_mlp`."""
+
+    def forward(self, x: th.Tensor) -> th.Tensor:
+        fusable = len(self) > 0 and all(type(module) in (nn.Linear, nn.ReLU) for module in self)
+        if fusable and fused_relu_mlp_applies(x, stacked=False):
+            linears = [module for module in self if isinstance(module, nn.Linear)]
+            weights, biases = [layer.weight for layer in linears], [layer.bias for layer in linears]
+            return relu_mlp(x, weights, biases, stacked=False, relu_last=isinstance(self[-1], nn.ReLU))
+        return super().forward(x)
+
+
+def mlp(in_features: int, hidden_sizes: list[int], out_features: int, activation_fn: type[nn.Module]) -> MLP:
     """Plain MLP with ``activation_fn`` between layers and a linear output (``out_features < 1``: no output layer)."""
     sizes = [in_features, *hidden_sizes]
     modules: list[nn.Module] = []
@@ -92,4 +110,4 @@ def mlp(in_features: int, hidden_sizes: list[int], out_features: int, activation
         modules += [nn.Linear(a, b), activation_fn()]
     if out_features > 0:
         modules.append(nn.Linear(sizes[-1], out_features))
-    return nn.Sequential(*modules)
+    return MLP(*modules)
