@@ -27,6 +27,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from torch.utils.flop_counter import FlopCounterMode
 
 from sb3_mtte import MTSAC, MTSACTE, __version__
+from sb3_mtte.common.utils import polyak_update
 from sb3_mtte.experiments.variants import VARIANTS as REGISTERED_VARIANTS
 
 STATE_DIM, ACTION_DIM = 39, 4
@@ -111,6 +112,17 @@ def matmul_probes(total_batch: int, device: str) -> dict[str, tuple[Callable[[],
     return probes
 
 
+def critic_parameter_passes(model) -> Callable[[], None]:
+    """The critic's Adam step and Polyak update: memory-bound passes over its parameters, N times as many with
+    per-task critics (run after an update, so that the gradients exist)."""
+
+    def passes() -> None:
+        model.critic.optimizer.step()
+        polyak_update(model.critic.parameters(), model.critic_target.parameters(), model.tau)
+
+    return passes
+
+
 def update_gflop(update: Callable[[], None]) -> float:
     """Matmul GFLOP of one update (after a first one), counted by ``torch.utils.flop_counter``."""
     update()
@@ -142,6 +154,7 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
     fill_buffer(sac, rows)
     updates["SB3-SAC"] = lambda: sac.train(1, total_batch)
 
+    critic_passes: dict[str, Callable[[], None]] = {}
     for label, (policy, kwargs) in VARIANTS.items():
         model = quiet(
             MTSAC(
@@ -156,6 +169,8 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
         )
         fill_buffer(model, rows)
         updates[label] = lambda m=model: m.train(1, batch_per_task)
+        if label in ("MTSAC-MT", "MTSAC-MT-shared-critic"):
+            critic_passes[f"critic-parameter-passes:{label}"] = critic_parameter_passes(model)
 
     te = quiet(
         MTSACTE(
@@ -172,8 +187,11 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
     updates["MTSACTE-update"] = lambda: te.train(1, batch_per_task)
     probes = matmul_probes(total_batch, device)
     gflop = {label: update_gflop(fn) for label, fn in updates.items()}
-    results = interleaved_medians({**updates, **{label: fn for label, (fn, _) in probes.items()}}, repeats)
+    results = interleaved_medians(
+        {**updates, **critic_passes, **{label: fn for label, (fn, _) in probes.items()}}, repeats
+    )
     peak = {label: flop / results.pop(label) for label, (_, flop) in probes.items()}
+    passes = {label.split(":")[1]: results.pop(label) for label in critic_passes}
 
     recomputations: dict[str, Callable[[], None]] = {}
     for estimator in ("virtual_step", "gradient_dot"):
@@ -204,6 +222,11 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
             k: round(v / results["MTSAC-MT"], 2) for k, v in results.items() if "recompute" in k
         },
         "per_task_over_shared_critic": round(results["MTSAC-MT"] / results["MTSAC-MT-shared-critic"], 3),
+        "critic_parameter_passes_seconds": {k: round(v, 5) for k, v in passes.items()},
+        # the ratio if the per-task critics cost what the shared one costs in everything but these passes
+        "per_task_over_shared_floor": round(
+            1 + (passes["MTSAC-MT"] - passes["MTSAC-MT-shared-critic"]) / results["MTSAC-MT-shared-critic"], 3
+        ),
         "matmul_peak_gflops": {k: round(v, 1) for k, v in peak.items()},
         "update_gflop": {k: round(v, 2) for k, v in gflop.items()},
         "achieved_gflops": {k: round(gflop[k] / results[k], 1) for k in gflop},
