@@ -27,6 +27,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 from torch.utils.flop_counter import FlopCounterMode
 
 from sb3_mtte import MTSAC, MTSACTE, __version__
+from sb3_mtte.common.relu_mlp import fused_relu_mlp
 from sb3_mtte.common.utils import polyak_update
 from sb3_mtte.experiments.variants import VARIANTS as REGISTERED_VARIANTS
 
@@ -112,6 +113,16 @@ def matmul_probes(total_batch: int, device: str) -> dict[str, tuple[Callable[[],
     return probes
 
 
+def layer_by_layer(update: Callable[[], None]) -> Callable[[], None]:
+    """The same update with every ReLU MLP as its layer-by-layer autograd graph instead of one node."""
+
+    def run() -> None:
+        with fused_relu_mlp(False):
+            update()
+
+    return run
+
+
 def critic_parameter_passes(model) -> Callable[[], None]:
     """The critic's Adam step and Polyak update: memory-bound passes over its parameters, N times as many with
     per-task critics (run after an update, so that the gradients exist)."""
@@ -171,6 +182,7 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
         updates[label] = lambda m=model: m.train(1, batch_per_task)
         if label in ("MTSAC-MT", "MTSAC-MT-shared-critic"):
             critic_passes[f"critic-parameter-passes:{label}"] = critic_parameter_passes(model)
+            updates[f"{label} (layer by layer)"] = layer_by_layer(updates[label])
 
     te = quiet(
         MTSACTE(
@@ -220,6 +232,9 @@ def bench_n_tasks(n_tasks: int, batch_per_task: int, device: str, repeats: int, 
         "ratio_to_sb3_sac": {k: round(v / base, 3) for k, v in results.items()},
         "recompute_over_mtsac_update": {
             k: round(v / results["MTSAC-MT"], 2) for k, v in results.items() if "recompute" in k
+        },
+        "one_node_mlp_speedup": {
+            k: round(results[f"{k} (layer by layer)"] / results[k], 3) for k in ("MTSAC-MT", "MTSAC-MT-shared-critic")
         },
         "per_task_over_shared_critic": round(results["MTSAC-MT"] / results["MTSAC-MT-shared-critic"], 3),
         "critic_parameter_passes_seconds": {k: round(v, 5) for k, v in passes.items()},
