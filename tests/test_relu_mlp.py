@@ -137,6 +137,15 @@ def test_second_derivatives_raise_a_clear_error_and_work_layer_by_layer():
     assert "ReLUMLP" in type(net(x).grad_fn).__name__  # the block restored the default
 
 
+def test_autocast_takes_the_layer_by_layer_graph():
+    net = mlp(3, [5], 1, nn.ReLU)
+    with th.autocast("cpu", dtype=th.bfloat16):
+        out = net(th.randn(2, 3))
+    assert "ReLUMLP" not in type(out.grad_fn).__name__ and out.dtype == th.bfloat16
+    out.float().sum().backward()
+    assert all(p.grad is not None for p in net.parameters())
+
+
 def test_other_activations_keep_the_layer_by_layer_graph():
     net = mlp(3, [5], 1, nn.Tanh)
     assert "ReLUMLP" not in type(net(th.randn(2, 3)).grad_fn).__name__
