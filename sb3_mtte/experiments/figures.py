@@ -320,7 +320,7 @@ def _nt_over_time_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> 
     axes[2].axhline(1.0 / n, color="gray", ls="--", lw=0.8, label="chance (1/N)")
     axes[2].set_ylim(-0.02, 1.02)
     axes[2].set_ylabel("linear probe of the task")
-    axes[2].legend(fontsize=7, loc="lower right")
+    axes[2].legend(fontsize=7, loc="center right")
     axes[2].grid(alpha=0.3)
     axes[2].set_xlabel(opts.xlabel)
     axes[0].legend(fontsize=7, ncol=max(1, math.ceil(n / 10)), loc="upper left", bbox_to_anchor=(1.0, 1.0))

@@ -43,6 +43,15 @@ def results_records(runs: Sequence[Run]) -> list[dict[str, Any]]:
     return sorted(records, key=lambda r: (order[r["label"]], r["seed"] if r["seed"] is not None else -1))
 
 
+def _success_cell(values: list[float]) -> str:
+    """'mean ± std% (n=...)' over seeds; one seed has no spread to show."""
+    if not values:
+        return "-"
+    if len(values) == 1:
+        return f"{100 * values[0]:.1f}% (n=1)"
+    return f"{100 * np.mean(values):.1f} ± {100 * np.std(values):.1f}% (n={len(values)})"
+
+
 def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> str:
     """Markdown Table 1: final success (%) mean +- std over seeds, per algorithm (rows) and benchmark (columns)."""
     benches = sorted(groups)
@@ -55,14 +64,12 @@ def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> 
         cells = []
         for bench in benches:
             values = [v for v in (final_success(r) for r in groups[bench].get(label, [])) if v is not None]
-            if not values:
-                cells.append("-")
-            else:
-                cells.append(f"{100 * np.mean(values):.1f} ± {100 * np.std(values):.1f}% (n={len(values)})")
+            cells.append(_success_cell(values))
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
     text = (
-        "Final success rate, mean ± std over seeds (n = number of seeds); a run's final success is its "
-        "success.json (python -m sb3_mtte.evaluate) when present, else its last evaluation.\n\n" + "\n".join(lines)
+        "Final success rate, mean ± std over seeds (n = number of seeds; no std for one seed); a run's final "
+        "success is its success.json (python -m sb3_mtte.evaluate) when present, else its last evaluation.\n\n"
+        + "\n".join(lines)
     )
     shown = [b for b in ("MT10", "MT20") if any(b == bench.split("-")[0] for bench in benches)]
     if with_paper and shown:
