@@ -11,9 +11,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import ENV, tiny_train
+from matplotlib.colors import to_hex
 
 from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
+from sb3_mtte.experiments import figures
 from sb3_mtte.experiments import runs as plot_runs
 from sb3_mtte.experiments.run_info import (
     append_resume,
@@ -26,6 +28,7 @@ from sb3_mtte.experiments.run_info import (
 )
 from sb3_mtte.experiments.sweep import env_id_for, plan_trials, trial_command
 from sb3_mtte.experiments.variants import label_of as algo_label
+from sb3_mtte.experiments.variants import variant_labels
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 
@@ -181,6 +184,30 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
     assert "(n=2)" in rows["SAC-MT"] and "(n=1)" in rows["Ours-VAE"] and "±" not in rows["Ours-VAE"]
     assert "89.3%" in table  # the paper's row for reference
     assert list(rows).index("SAC-MT") < list(rows).index("Ours") < list(rows).index("Ours-VAE")
+
+
+def test_every_algorithm_keeps_one_distinct_style_in_every_figure(tmp_path, monkeypatch):
+    labels = variant_labels() + ["Mine"]
+    groups = {
+        label: [plot_runs.load_run(make_synthetic_run(tmp_path, f"algo{i}", label, 0, 0.5, nt=False))]
+        for i, label in enumerate(labels)
+    }
+    figs = {}
+    monkeypatch.setattr(figures, "_save", lambda fig, path, opts, written: figs.__setitem__(path.name, fig))
+    opts = figures.PlotOptions(out=tmp_path)
+    figures.plot_success("MT10", groups, opts, [])
+    figures.plot_per_task("MT10", {label: groups[label] for label in labels[5:]}, opts, [])
+    assert set(figs) == {"success_MT10.png", "ablation_MT10.png", "per_task_MT10.png"}
+    seen = {}
+    for name, fig in figs.items():
+        drawn = {}
+        for line in (line for ax in fig.axes for line in ax.get_lines()):
+            label = line.get_label().split(" (n=")[0]
+            style = (to_hex(line.get_color()), line.get_linestyle())
+            assert drawn.setdefault(label, style) == style, (name, label)
+            assert seen.setdefault(label, style) == style, (name, label)  # the same look in every figure
+        assert len(set(drawn.values())) == len(drawn), name  # no two algorithms alike
+    assert set(seen) == set(labels)
 
 
 def final_eval(run: Path) -> float:

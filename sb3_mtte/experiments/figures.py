@@ -38,10 +38,15 @@ from sb3_mtte.experiments.runs import (
     task_scalar,
     train_frequency,
 )
-from sb3_mtte.experiments.variants import ablation_labels
+from sb3_mtte.experiments.variants import ablation_labels, variant_labels
 
 Groups = dict[str, list[Run]]
 """Algorithm label -> runs (its seeds), for one benchmark."""
+
+_COLORS = tuple(
+    f"tab:{name}" for name in ("blue", "orange", "green", "red", "purple", "brown", "pink", "gray", "olive", "cyan")
+)
+_LINESTYLES = ("-", "--", "-.", ":")
 
 
 @dataclass
@@ -107,10 +112,25 @@ def _save(fig: Figure, path: Path, opts: PlotOptions, written: list[Path]) -> No
     written.append(path)
 
 
-def _band(ax: Axes, x: np.ndarray, mean: np.ndarray, std: np.ndarray, label: str) -> None:
-    (line,) = ax.plot(x, mean, label=label)
+def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
+    """(color, linestyle) of each algorithm label: fixed by its place among the registered variants, so a method
+    looks the same in every figure; unregistered labels take the places after them. Past ten labels the colors
+    repeat with another line style, so no two labels share both."""
+    known = variant_labels()
+    places = {label: i for i, label in enumerate(known)}
+    for label in sorted(set(labels) - set(known)):
+        places[label] = len(places)
+    return {
+        label: (_COLORS[places[label] % len(_COLORS)], _LINESTYLES[places[label] // len(_COLORS) % len(_LINESTYLES)])
+        for label in labels
+    }
+
+
+def _band(ax: Axes, x: np.ndarray, mean: np.ndarray, std: np.ndarray, label: str, style: tuple[str, str]) -> None:
+    color, linestyle = style
+    ax.plot(x, mean, label=label, color=color, linestyle=linestyle)
     if np.any(std > 0):
-        ax.fill_between(x, mean - std, mean + std, alpha=0.2, color=line.get_color())
+        ax.fill_between(x, mean - std, mean + std, alpha=0.2, color=color)
 
 
 def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[int]:
@@ -153,8 +173,15 @@ def _mean_series(
     return x, mean
 
 
-def _success_band(ax: Axes, runs: Sequence[Run], label: str, opts: PlotOptions, task: int | None = None) -> int:
-    """Success (%) of ``runs``, mean +- std over seeds; returns the number of runs drawn."""
+def _success_band(
+    ax: Axes,
+    runs: Sequence[Run],
+    label: str,
+    style: tuple[str, str],
+    opts: PlotOptions,
+    task: int | None = None,
+) -> int:
+    """Success (%) of ``runs``, mean +- std over seeds, drawn in ``style``; returns the number of runs drawn."""
     curves = []
     for run in runs:
         curve = success_curve(run, task) if task is None or task < run.n_tasks else None
@@ -162,7 +189,7 @@ def _success_band(ax: Axes, runs: Sequence[Run], label: str, opts: PlotOptions, 
             curves.append((curve[0] * opts.xscale(run), smooth(curve[1], opts.smooth)))
     if curves:
         x, mean, std = mean_std(curves)
-        _band(ax, x, 100 * mean, 100 * std, label=label)
+        _band(ax, x, 100 * mean, 100 * std, label=label, style=style)
     return len(curves)
 
 
@@ -172,12 +199,13 @@ def plot_success(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
     sets = [("success", [label for label in label_order(list(groups)) if label not in ablations[1:]])]
     if any(label in groups for label in ablations[1:]):
         sets.append(("ablation", [label for label in ablations if label in groups]))
+    styles = algorithm_styles(list(groups))
     for name, labels in sets:
         fig = _figure(7, 4.5)
         ax = fig.subplots()
         for label in labels:
             n_runs = len([run for run in groups[label] if success_curve(run) is not None])
-            _success_band(ax, groups[label], f"{label} (n={n_runs})", opts)
+            _success_band(ax, groups[label], f"{label} (n={n_runs})", styles[label], opts)
         ax.set_xlabel(opts.xlabel)
         ax.set_ylabel("success rate (%)")
         ax.set_ylim(-2, 102)
@@ -192,9 +220,10 @@ def plot_per_task(bench: str, groups: Groups, opts: PlotOptions, written: list[P
     """Figs. 8-9: success of every task, one panel per task, mean +- std over seeds per algorithm."""
     names = next(iter(groups.values()))[0].task_names
     fig, axes = _panels(len(names), 5, 3.2, 2.6)
+    styles = algorithm_styles(list(groups))
     for i, (ax, name) in enumerate(zip(axes, names)):
         for label in label_order(list(groups)):
-            _success_band(ax, groups[label], label, opts, task=i)
+            _success_band(ax, groups[label], label, styles[label], opts, task=i)
         ax.set_title(short_task_name(name), fontsize=9)
         ax.set_ylim(-2, 102)
         ax.tick_params(labelsize=7)
