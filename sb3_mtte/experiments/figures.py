@@ -113,9 +113,9 @@ def _save(fig: Figure, path: Path, opts: PlotOptions, written: list[Path]) -> No
 
 
 def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
-    """(color, linestyle) of each algorithm label: fixed by its place among the registered variants, so a method
-    looks the same in every figure; unregistered labels take the places after them. Past ten labels the colors
-    repeat with another line style, so no two labels share both."""
+    """(color, linestyle) of each algorithm label: fixed by its place among the registered variants, so a registered
+    method looks the same in every figure; unregistered labels take the places after them, in name order. Past ten
+    labels the colors repeat with another line style, so no two of the first 40 labels share both."""
     known = variant_labels()
     places = {label: i for i, label in enumerate(known)}
     for label in sorted(set(labels) - set(known)):
