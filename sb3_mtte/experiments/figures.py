@@ -117,11 +117,9 @@ def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
     method looks the same in every figure; unregistered labels take the places after them, in name order. Past ten
     labels the colors repeat with another line style, so no two of the first 40 labels share both."""
     known = variant_labels()
-    places = {label: i for i, label in enumerate(known)}
-    for label in sorted(set(labels) - set(known)):
-        places[label] = len(places)
+    place = {label: i for i, label in enumerate(known + sorted(set(labels) - set(known)))}
     return {
-        label: (_COLORS[places[label] % len(_COLORS)], _LINESTYLES[places[label] // len(_COLORS) % len(_LINESTYLES)])
+        label: (_COLORS[place[label] % len(_COLORS)], _LINESTYLES[place[label] // len(_COLORS) % len(_LINESTYLES)])
         for label in labels
     }
 
@@ -388,4 +386,12 @@ def _matrix_times(runs: Sequence[Run], opts: PlotOptions) -> list[float]:
     return sorted({float(steps[0]), float(steps[len(steps) // 2]), float(steps[-1])})
 
 
-__all__ = ["PlotOptions", "plot_bellman", "plot_negative_transfer", "plot_per_task", "plot_success", "safe_name"]
+__all__ = [
+    "PlotOptions",
+    "algorithm_styles",
+    "plot_bellman",
+    "plot_negative_transfer",
+    "plot_per_task",
+    "plot_success",
+    "safe_name",
+]
