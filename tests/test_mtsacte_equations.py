@@ -34,6 +34,7 @@ from torch.func import grad
 import sb3_mtte.mtsac.mtsac as mtsac_module
 from sb3_mtte import MTSACTE, make_mt_env
 from sb3_mtte.mtsacte.objectives import (
+    TaskSelection,
     negative_transfer_measure,
     negative_transfer_objective,
     select_benign_tasks,
@@ -615,3 +616,70 @@ def test_collected_actions_use_a_sampled_z(toy_env, monkeypatch):
     eps = th.cat(eps)
     assert float(eps.mean().abs()) < 0.1
     assert 0.9 < float(eps.std()) < 1.1
+
+
+def test_no_step_when_j_rep_has_no_term(toy_env, monkeypatch):
+    """alpha = 0 makes every mu 0, so C \\ C_s is empty; without the VAE term J^rep has no term: phi, the decoder
+    and the Adam state stay exactly as they were (Adam with momentum would move phi on zero gradients)."""
+    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(rep_gradient_steps=3, nt_step_size=0.0, use_vae=False))
+    model.learn(200)
+    before = {k: v.clone() for k, v in [*model.encoder.state_dict().items(), *model.decoder.state_dict().items()]}
+    steps = []
+    monkeypatch.setattr(model.policy.rep_optimizer, "step", lambda *a, **k: steps.append(1))
+    model.update_representation(8)
+    assert model.selected_tasks.all() and not steps
+    after = dict([*model.encoder.state_dict().items(), *model.decoder.state_dict().items()])
+    for name, value in before.items():
+        th.testing.assert_close(after[name], value, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize("use_vae, harmful", [(True, []), (False, [3])])
+def test_a_step_whenever_j_rep_has_a_term(toy_env, monkeypatch, use_vae, harmful):
+    """With the VAE term (C \\ C_s empty), or with a task outside C_s (no VAE term), every J^rep update steps."""
+    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(rep_gradient_steps=3, use_vae=use_vae))
+    model.learn(200)
+    selected = th.tensor([task not in harmful for task in range(N_TASKS)])
+    selection = TaskSelection(
+        th.zeros(N_TASKS, N_TASKS), th.zeros(N_TASKS, dtype=th.long), selected, th.full((N_TASKS,), 1.0 / N_TASKS)
+    )
+    monkeypatch.setattr(model, "_select", lambda transfer, statistics: selection)
+    steps = []
+    monkeypatch.setattr(model.policy.rep_optimizer, "step", lambda *a, **k: steps.append(1))
+    model.update_representation(8)
+    assert len(steps) == 3
+
+
+def test_initial_std_of_the_embedding(toy_env):
+    """z_init_std sets E_phi's standard deviation at initialisation (every state and task), leaving its mean."""
+    default = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
+    small = MTSACTE(
+        "MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"net_arch": [16, 16], "z_dim": 3, "z_init_std": 0.05})
+    )
+    obs = th.as_tensor(toy_env.reset())
+    with th.no_grad():
+        mean_default, log_std_default = loop_split(default.policy.encoder(obs))
+        mean_small, log_std_small = loop_split(small.policy.encoder(obs))
+    th.testing.assert_close(mean_small, mean_default)
+    weights_part = log_std_default - default.policy.encoder[-1].bias[3:]
+    th.testing.assert_close(log_std_small, weights_part + math.log(0.05))
+    with pytest.raises(ValueError, match="z_init_std"):
+        MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"z_init_std": 0.0}))
+
+
+def test_deterministic_predict_with_a_sampled_z(toy_env):
+    """deterministic_z="sample": deterministic predict feeds the actor a sample of E_phi (as in training) and takes
+    the mean action: over many copies of one observation the actions vary, and their z has E_phi's std."""
+    kwargs = small_model_kwargs(policy_kwargs={"net_arch": [16, 16], "z_dim": 3, "deterministic_z": "sample"})
+    model = MTSACTE("MlpPolicy", toy_env, **kwargs)
+    policy = model.policy
+    fed: list[th.Tensor] = []
+    policy.actor.net.register_forward_pre_hook(lambda module, args: fed.append(args[0][:, policy.state_dim :].detach()))
+    obs = np.repeat(toy_env.reset()[:1], 2000, axis=0)
+    actions = model.predict(obs, deterministic=True)[0]
+    assert actions.std(axis=0).min() > 0
+    with th.no_grad():
+        mean, log_std = loop_split(policy.encoder(th.as_tensor(obs[:1])))
+    eps = (fed[-1] - mean) / log_std.exp()
+    th.testing.assert_close(eps.std(0), th.ones(policy.z_dim, dtype=eps.dtype), rtol=0.1, atol=0.0)
+    with pytest.raises(ValueError, match="deterministic_z"):
+        MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"deterministic_z": "mode"}))

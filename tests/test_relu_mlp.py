@@ -151,3 +151,28 @@ def test_other_activations_keep_the_layer_by_layer_graph():
     assert "ReLUMLP" not in type(net(th.randn(2, 3)).grad_fn).__name__
     ensemble = EnsembleMLP(2, 3, [5], 1, nn.Tanh)
     assert "ReLUMLP" not in type(ensemble(th.randn(2, 4, 3)).grad_fn).__name__
+
+
+@pytest.mark.parametrize("missing", ["_are_functorch_transforms_active", "_dispatch_keys"])
+@pytest.mark.parametrize("case", ["ensemble", "mlp 2-D"])
+def test_a_pytorch_without_the_private_functions_takes_the_layer_by_layer_graph(monkeypatch, missing, case):
+    """If a PyTorch release renames either private function, every network still runs (layer by layer) with the
+    same values and gradients, and torch.func transforms keep working."""
+    make, shape, stacked, relu_last = CASES[case]
+    th.manual_seed(8)
+    net = make().double()
+    x = th.randn(*shape, dtype=th.double)
+    expected = net(x)
+    expected_grads = th.autograd.grad(expected.pow(2).sum(), list(net.parameters()))
+    monkeypatch.delattr(th._C, missing)
+    out = net(x)
+    assert "ReLUMLP" not in type(out.grad_fn).__name__
+    th.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
+    for g, e in zip(th.autograd.grad(out.pow(2).sum(), list(net.parameters())), expected_grads, strict=True):
+        th.testing.assert_close(g, e, rtol=1e-12, atol=1e-12)
+    if not stacked:  # a transform: gradients per row
+        params = dict(net.named_parameters())
+        per_row = vmap(grad(lambda p, row: th.func.functional_call(net, p, (row,)).sum()), in_dims=(None, 0))(
+            params, x.unsqueeze(1)
+        )
+        assert all(v.shape[0] == x.shape[0] for v in per_row.values())

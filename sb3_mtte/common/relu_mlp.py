@@ -7,7 +7,8 @@ backward pass masks each input gradient in the buffer its matmul just wrote. The
 layer-by-layer graph (``tests/test_relu_mlp.py`` compares values and gradients).
 
 The layer-by-layer graph is used instead inside ``torch.func`` transforms (``vmap``/``grad``/``vjp``), under
-autocast, and within ``with fused_relu_mlp(False):``. The node is differentiable once: a backward pass through it
+autocast, within ``with fused_relu_mlp(False):``, and on a PyTorch without the two private functions that tell a
+transform or a vmapped tensor apart (``torch._C._are_functorch_transforms_active``, ``torch._C._dispatch_keys``). The node is differentiable once: a backward pass through it
 with ``create_graph=True`` raises an error that says to turn it off.
 """
 
@@ -34,11 +35,17 @@ def fused_relu_mlp(enabled: bool) -> Iterator[None]:
         _enabled = before
 
 
+def private_internals_present() -> bool:
+    """Whether this PyTorch has the private functions the fused node relies on (else: layer by layer)."""
+    return all(hasattr(th._C, name) for name in ("_are_functorch_transforms_active", "_dispatch_keys"))
+
+
 def fused_relu_mlp_applies(x: th.Tensor, stacked: bool) -> bool:
-    """Whether :func:`relu_mlp` may take ``x``: turned on, not under a ``torch.func`` transform nor autocast,
-    3-D if stacked."""
+    """Whether :func:`relu_mlp` may take ``x``: turned on, PyTorch's private functions present, not under a
+    ``torch.func`` transform nor autocast, 3-D if stacked."""
     return (
         _enabled
+        and private_internals_present()
         and not th._C._are_functorch_transforms_active()
         and not th.is_autocast_enabled(x.device.type)
         and (not stacked or x.dim() == 3)

@@ -7,6 +7,8 @@ Benchmarks:
 - ``MT20`` (:data:`MT20_TASKS`): the first 20 tasks of MT50 in MT50's order (the paper's MT20). Its goal
   variations are those MT50 draws for these tasks with the same seed.
 - ``MT50`` (:data:`MT50_TASKS`): all 50 tasks, in Meta-World's MT50 order.
+- ``DEV6`` (:data:`DEV6_TASKS`): the development benchmark, six tasks outside MT10 and MT20 in three pairs that
+  share a scene (faucet-open/close, plate-slide/-back, handle-press/pull).
 - any list of distinct v3 env names, e.g. ``["reach-v3", "push-v3"]``.
 
 Each task has Meta-World's 50 goal variations (``metaworld.Task`` objects, generated from the seed the way
@@ -65,7 +67,23 @@ MT50_TASKS: list[str] = [
 MT20_TASKS: list[str] = MT50_TASKS[:20]
 """The first 20 tasks of MT50 (the paper's MT20)."""
 
-METAWORLD_BENCHMARKS: dict[str, list[str]] = {"MT10": MT10_TASKS, "MT20": MT20_TASKS, "MT50": MT50_TASKS}
+DEV6_TASKS: list[str] = [
+    "faucet-open-v3",
+    "faucet-close-v3",
+    "plate-slide-v3",
+    "plate-slide-back-v3",
+    "handle-press-v3",
+    "handle-pull-v3",
+]
+"""The development benchmark: six tasks outside MT10 and MT20, in three pairs that share a scene, where only the
+task identity tells which way to move the object. Defaults are chosen on it, never on a reported benchmark."""
+
+METAWORLD_BENCHMARKS: dict[str, list[str]] = {
+    "MT10": MT10_TASKS,
+    "MT20": MT20_TASKS,
+    "MT50": MT50_TASKS,
+    "DEV6": DEV6_TASKS,
+}
 """Named Meta-World benchmark -> its task names."""
 
 METAWORLD_ENV_KWARGS = ("max_episode_steps", "render_mode", "camera_name", "camera_id", "width", "height")

@@ -1,6 +1,6 @@
 """Env ids of the benchmarks and the VecEnv "class" that makes sub-env i run task i.
 
-Env ids ``MT10``, ``MT20``, ``MT50``, ``toy-conflict``, ``toy-agree`` (and ``toy-conflict-<N>``), each also with a
+Env ids ``MT10``, ``MT20``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree`` (and ``toy-conflict-<N>``), each also with a
 budget suffix (``MT10-smoke``): the suffix picks another entry of the hyperparameter file and names the run folder,
 the benchmark is the same. rl-zoo builds every sub-env with the same constructor; :class:`MultiTaskVecEnvFactory`
 (the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's ``--vec-env`` choice inside) tells
@@ -23,7 +23,7 @@ from sb3_mtte.experiments.callbacks import EpisodeReporter
 BUDGET_SUFFIXES = ("smoke", "cpu")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
 
-STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "toy-conflict", "toy-agree")
+STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "DEV6", "toy-conflict", "toy-agree")
 
 
 def split_env_id(env_id: str) -> tuple[str, str | None]:
@@ -46,7 +46,7 @@ def benchmark_task_names(benchmark: str) -> list[str]:
     if benchmark.upper() in METAWORLD_BENCHMARKS:
         return list(METAWORLD_BENCHMARKS[benchmark.upper()])
     raise ValueError(
-        f"Unknown benchmark {benchmark!r}: use MT10, MT20, MT50, toy-conflict, toy-agree or toy-<name>-<N>, "
+        f"Unknown benchmark {benchmark!r}: use MT10, MT20, MT50, DEV6, toy-conflict, toy-agree or toy-<name>-<N>, "
         f"optionally followed by a budget suffix ({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
     )
 
@@ -59,7 +59,7 @@ def env_id_n_tasks(env_id: str) -> int:
 def benchmark_help() -> str:
     """The env ids the launcher accepts, in words."""
     return (
-        "MT10, MT20, MT50, toy-conflict, toy-agree or toy-<conflict|agree>-<N>, optionally with a budget suffix "
+        "MT10, MT20, MT50, DEV6, toy-conflict, toy-agree or toy-<conflict|agree>-<N>, optionally with a budget suffix "
         f"({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
     )
 

@@ -134,6 +134,9 @@ _MOORE = "dict(net_arch=[{0}, {0}], n_experts=4)"
 # critic_use_compositional_encoding, task_loss_threshold), widths 2 x 400 (their hidden sizes live outside that repo).
 _PACO = "dict(net_arch=[{0}, {0}], n_parameter_sets=5, task_loss_threshold=3000.0)"
 
+METAWORLD_ENTRIES = ("MT*", "DEV6*")
+"""Patterns of the Meta-World env entries of the hyperparameter files (the toy entries are ``toy-*``)."""
+
 VARIANTS: dict[str, Variant] = {}
 """Zoo key -> variant, in the row order of Table 1 and then Fig. 7."""
 
@@ -224,7 +227,9 @@ for _variant in (
         "mtsac",
         "SoftModularPolicy",
         env_overrides={
-            "MT*": {"policy_kwargs": f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"},
+            **dict.fromkeys(
+                METAWORLD_ENTRIES, {"policy_kwargs": f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"}
+            ),
             "toy-*": {"policy_kwargs": f"dict(net_arch=[64, 64], {_SOFT_MODULAR.format(2, 32)})"},
         },
         paper={"MT10": 83.3, "MT20": 65.0},
@@ -256,7 +261,10 @@ for _variant in (
         "MOORE",
         "mtsac",
         "MOOREPolicy",
-        env_overrides={"MT*": {"policy_kwargs": _MOORE.format(400)}, "toy-*": {"policy_kwargs": _MOORE.format(64)}},
+        env_overrides={
+            **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _MOORE.format(400)}),
+            "toy-*": {"policy_kwargs": _MOORE.format(64)},
+        },
         paper={"MT10": 88.7},
         paper_source=_REPORTED.format("Hendawi et al. (ICLR 2024)", 83.2),
     ),
@@ -265,7 +273,10 @@ for _variant in (
         "PaCo",
         "mtsac",
         "PaCoPolicy",
-        env_overrides={"MT*": {"policy_kwargs": _PACO.format(400)}, "toy-*": {"policy_kwargs": _PACO.format(64)}},
+        env_overrides={
+            **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _PACO.format(400)}),
+            "toy-*": {"policy_kwargs": _PACO.format(64)},
+        },
         paper={"MT10": 85.4},
         paper_source=_REPORTED.format("Sun et al. (NeurIPS 2022)", 73.6),
     ),

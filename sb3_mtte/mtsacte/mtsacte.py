@@ -259,9 +259,12 @@ class MTSACTE(MTSAC):
                 transfer = transfer_matrix(objectives, z, self.nt_step_size, self.nt_estimator)
             statistics.add(transfer)
             self._set_selection(self._select(transfer, statistics))
+            harmful_tasks = th.nonzero(~self.selected_tasks).flatten()
+            if harmful_tasks.numel() == 0 and not self._has_vae_term():
+                continue  # J^rep has no term: no step, so Adam's momentum does not move phi on zero gradients
             loss, enc_grads, dec_grads = representation_gradients(
                 objectives,
-                th.nonzero(~self.selected_tasks).flatten(),
+                harmful_tasks,
                 step_size=self.nt_step_size,
                 c_vae=self.c_vae,
                 use_vae=self.use_vae,
@@ -273,8 +276,12 @@ class MTSACTE(MTSAC):
         self.task_probe_accuracy = task_probe_accuracy(z)
         self.task_probe_accuracy_of_mean = task_probe_accuracy(z_mean)
         self.z_std = float(z_log_std.exp().mean())
-        self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
+        if losses:
+            self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
+
+    def _has_vae_term(self) -> bool:
+        return self.use_vae and self.c_vae > 0
 
     def _select(self, transfer: th.Tensor, statistics: TransferStatistics) -> TaskSelection:
         """mu, C_s and w (Eq. 6-8) from this batch's matrix or from the iteration's mean (``nt_measure``)."""

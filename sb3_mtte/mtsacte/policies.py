@@ -3,6 +3,7 @@ and N per-task twin critics Q_psi_i(s, a) with targets (one batched ensemble).""
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch as th
@@ -13,6 +14,8 @@ from torch import nn
 from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
+
+DETERMINISTIC_Z = ("mean", "sample")
 
 
 class EmbeddingActor(MultiTaskActor):
@@ -53,6 +56,10 @@ class MTSACTEPolicy(MultiTaskPolicy):
     :param activation_fn: activation function.
     :param z_dim: size of the representation z (8 in the paper).
     :param rep_learning_rate: learning rate of the encoder and decoder (J^rep).
+    :param z_init_std: E_phi's standard deviation at initialisation (the bias of its log-std head is set to
+        ``log(z_init_std)``); None keeps PyTorch's initialisation (a standard deviation of about 1).
+    :param deterministic_z: what ``predict(deterministic=True)`` feeds the actor: ``"mean"``, E_phi's mean, or
+        ``"sample"``, a sample of E_phi as in training.
     :param n_critics: twin critics per task.
     :param critic_arch: must be ``"per_task"`` (kept for a uniform constructor with MTSAC).
     :param optimizer_class: optimizer class.
@@ -69,6 +76,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
         activation_fn: type[nn.Module] = nn.ReLU,
         z_dim: int = 8,
         rep_learning_rate: float = 3e-4,
+        z_init_std: float | None = None,
+        deterministic_z: str = "mean",
         n_critics: int = 2,
         critic_arch: str = "per_task",
         optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
@@ -76,6 +85,10 @@ class MTSACTEPolicy(MultiTaskPolicy):
     ) -> None:
         if critic_arch != "per_task":
             raise ValueError("MTSACTE uses one twin critic per task (critic_arch='per_task').")
+        if z_init_std is not None and not z_init_std > 0:
+            raise ValueError(f"z_init_std must be a positive standard deviation or None, got {z_init_std}.")
+        if deterministic_z not in DETERMINISTIC_Z:
+            raise ValueError(f"deterministic_z must be one of {DETERMINISTIC_Z}, got {deterministic_z!r}.")
         super().__init__(
             observation_space,
             action_space,
@@ -87,8 +100,12 @@ class MTSACTEPolicy(MultiTaskPolicy):
             optimizer_kwargs,
         )
         self.z_dim, self.rep_learning_rate = z_dim, rep_learning_rate
+        self.z_init_std, self.deterministic_z = z_init_std, deterministic_z
         act, state_dim, action_dim = activation_fn, self.state_dim, self.action_dim
         self.encoder = mlp(state_dim + n_tasks, self.arch("embed"), 2 * z_dim, act)
+        if z_init_std is not None:
+            with th.no_grad():
+                self.encoder[-1].bias[z_dim:].fill_(math.log(z_init_std))
         self.decoder = mlp(z_dim + n_tasks, self.arch("decoder"), state_dim, act)
         self.actor = EmbeddingActor(state_dim, z_dim, action_dim, n_tasks, self.arch("pi"), act)
         self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule(1))
@@ -116,7 +133,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
         return self.actor(self.actor_input(obs[..., : self.state_dim], z), noise)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        z = self.embed(observation, deterministic)
+        z = self.embed(observation, deterministic and self.deterministic_z == "mean")
         return self.actor.act(self.actor_input(observation[..., : self.state_dim], z), deterministic)
 
     def set_training_mode(self, mode: bool) -> None:
@@ -129,6 +146,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
             **super()._get_constructor_parameters(),
             "z_dim": self.z_dim,
             "rep_learning_rate": self.rep_learning_rate,
+            "z_init_std": self.z_init_std,
+            "deterministic_z": self.deterministic_z,
         }
 
 
