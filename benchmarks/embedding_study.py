@@ -49,9 +49,14 @@ GRID: dict[str, dict[str, Any]] = {
         "nt_estimator": "gradient_dot",
         "policy_kwargs": {"z_init_std": 0.1},
     },
+    "c_vae_1e-4": {"c_vae": 1e-4},
+    "init_0.1_c_vae_1e-3": {"c_vae": 1e-3, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_c_vae_1e-4": {"c_vae": 1e-4, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_c_vae_0": {"c_vae": 0.0, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_alpha_1e-2": {"nt_step_size": 1e-2, "policy_kwargs": {"z_init_std": 0.1}},
+    # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task
+    "init_0.1_c_vae_warmup_5k": {"c_vae_warmup_per_task": 5000, "policy_kwargs": {"z_init_std": 0.1}},
+    "c_vae_warmup_5k": {"c_vae_warmup_per_task": 5000},
     "steps_50_first_order_init_0.1": {
         "rep_gradient_steps": 50,
         "nt_estimator": "gradient_dot",
@@ -60,7 +65,7 @@ GRID: dict[str, dict[str, Any]] = {
 }
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
 MTSACTE_ONLY = ("use_vae", "use_topk", "n_select", "top_k", "iteration_length", "rep_gradient_steps")
-MTSACTE_ONLY += ("nt_step_size", "c_vae", "rep_learning_rate", "nt_estimator")
+MTSACTE_ONLY += ("nt_step_size", "c_vae", "rep_learning_rate", "nt_estimator", "c_vae_warmup_steps")
 
 
 def settings(name: str, n_tasks: int, per_task_steps: int) -> tuple[type, dict[str, Any]]:
@@ -71,6 +76,8 @@ def settings(name: str, n_tasks: int, per_task_steps: int) -> tuple[type, dict[s
     kwargs.update(buffer_size=n_tasks * per_task_steps, learning_starts=n_tasks * 1500, n_select=n_tasks // 2)
     overrides = dict(GRID[name])
     kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
+    if "c_vae_warmup_per_task" in overrides:
+        overrides["c_vae_warmup_steps"] = n_tasks * overrides.pop("c_vae_warmup_per_task")
     kwargs.update(overrides)
     if name == "sac_mt":
         return MTSAC, {key: value for key, value in kwargs.items() if key not in MTSACTE_ONLY}
