@@ -9,7 +9,7 @@ keep_freed_memory()
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer
 from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
-from sb3_mtte.envs import get_task_names, make_mt_env
+from sb3_mtte.envs import OneHotTaskWrapper, get_task_names, make_mt_env
 from sb3_mtte.mtsac import MTSAC
 from sb3_mtte.mtsacte import MTSACTE
 from sb3_mtte.version import __version__
@@ -19,6 +19,7 @@ __all__ = [
     "MTSACTE",
     "MultiTaskEvalCallback",
     "MultiTaskReplayBuffer",
+    "OneHotTaskWrapper",
     "SuccessResult",
     "__version__",
     "evaluate_success",

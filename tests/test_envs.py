@@ -244,3 +244,13 @@ def test_toy_subproc_vec_env():
         assert [info["task_index"] for info in infos] == [0, 1]
     finally:
         env.close()
+
+
+def test_one_hot_task_wrapper_is_importable_from_the_package():
+    """The README's `OneHotTaskWrapper(gym.make("Pendulum-v1"))`, imported from sb3_mtte: state followed by [1.0]."""
+    import gymnasium as gym
+
+    from sb3_mtte import OneHotTaskWrapper
+
+    obs, _ = OneHotTaskWrapper(gym.make("Pendulum-v1")).reset(seed=0)
+    assert obs.shape == (4,) and obs[-1] == 1.0

@@ -88,3 +88,44 @@ def test_console_script_is_declared_and_dispatches(capsys):
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["unknown"])
     assert exit_info.value.code == 2 and "sb3-mtte" in capsys.readouterr().out
+
+
+@pytest.fixture(scope="module")
+def toy_model_zip(tmp_path_factory):
+    from sb3_mtte import MTSAC, make_mt_env
+
+    path = tmp_path_factory.mktemp("model") / "toy.zip"
+    MTSAC("MlpPolicy", make_mt_env("toy-conflict"), learning_starts=10, buffer_size=100, seed=0).save(path)
+    return path
+
+
+@pytest.mark.parametrize(
+    "case, message",
+    [
+        ("wrong benchmark", "was trained on 4 tasks; toy-conflict-6 has 6: pass --env"),
+        ("one meta-world task", "was trained on 4 tasks; reach-v3 has 1: pass --env"),
+        ("unknown env", "Unknown benchmark 'nothing-v3'"),
+        ("missing file", "No model at"),
+        ("truncated", "is not a complete SB3 checkpoint"),
+    ],
+)
+def test_evaluate_refuses_bad_input_with_one_line(toy_model_zip, tmp_path, capsys, case, message):
+    """Each mistake ends with exit status 2 and one line naming the fix, never a traceback from a library."""
+    model, env = str(toy_model_zip), "toy-conflict"
+    if case == "wrong benchmark":
+        env = "toy-conflict-6"
+    elif case == "one meta-world task":
+        env = "reach-v3"
+    elif case == "unknown env":
+        env = "nothing-v3"
+    elif case == "missing file":
+        model = str(tmp_path / "absent.zip")
+    elif case == "truncated":
+        data = toy_model_zip.read_bytes()
+        (tmp_path / "cut.zip").write_bytes(data[: len(data) // 2])
+        model = str(tmp_path / "cut.zip")
+    with pytest.raises(SystemExit) as exit_info:
+        evaluate.main([model, "--env", env, "--episodes", "1"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1, err

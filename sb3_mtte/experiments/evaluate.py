@@ -20,6 +20,7 @@ import json
 import os
 import sys
 import time
+import zipfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -30,7 +31,8 @@ from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import load_model
-from sb3_mtte.experiments.env_ids import split_env_id
+from sb3_mtte.envs import MT50_TASKS
+from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 
 
 def default_output_path(model_path: str | os.PathLike, info: dict[str, Any] | None) -> Path:
@@ -78,11 +80,12 @@ def evaluate_model(
     env_id = env or (info or {}).get("env_id")
     if env_id is None:
         raise ValueError(f"No run_info.json beside {model_path}: pass --env.")
-    benchmark = split_env_id(env_id)[0]
+    benchmark = _benchmark_of(env_id)
     if seed is None:
         seed = int((info or {}).get("benchmark_seed", 0))
+    data = _checkpoint_data(model_path)
+    _check_task_count(model_path, data, env_id, benchmark)
     model = _load_model_of_run(model_path, info, device)
-    data = read_checkpoint_data(model_path)
     start = time.time()
     result = evaluate_success(model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed)
     record = {
@@ -115,6 +118,37 @@ def evaluate_model(
     return record
 
 
+def _benchmark_of(env_id: str) -> str | list[str]:
+    """The benchmark an env id names: a benchmark (``MT10-smoke`` -> ``MT10``) or one Meta-World env name."""
+    benchmark = split_env_id(env_id)[0]
+    if benchmark in MT50_TASKS:
+        return [benchmark]
+    benchmark_task_names(benchmark)  # a clear ValueError for an unknown name
+    return benchmark
+
+
+def _checkpoint_data(model_path: Path) -> dict[str, Any]:
+    if not model_path.is_file():
+        raise FileNotFoundError(f"No model at {model_path}: pass the path of a model zip (e.g. <run>/<env>.zip).")
+    try:
+        return read_checkpoint_data(model_path)
+    except (zipfile.BadZipFile, KeyError, ValueError) as error:
+        raise ValueError(
+            f"{model_path} is not a complete SB3 checkpoint ({error}): it may be truncated; evaluate another "
+            "checkpoint of the run (rl_model_<steps>_steps.zip, best_model.zip)."
+        ) from None
+
+
+def _check_task_count(model_path: Path, data: dict[str, Any], env_id: str, benchmark: str | list[str]) -> None:
+    n_tasks = data.get("n_tasks")
+    n_env = len(benchmark) if isinstance(benchmark, list) else len(benchmark_task_names(benchmark))
+    if n_tasks is not None and n_tasks != n_env:
+        raise ValueError(
+            f"{model_path} was trained on {n_tasks} tasks; {env_id} has {n_env}: pass --env with the benchmark "
+            "the model was trained on."
+        )
+
+
 def _load_model_of_run(model_path: Path, info: dict[str, Any] | None, device: str) -> BaseAlgorithm:
     """Load a model zip, checking its task count against its run's."""
     if not model_path.is_file():
@@ -136,4 +170,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--out", default=None, help="JSON path (default: success.json beside the model)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions")
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
-    return evaluate_model(args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic)
+    try:
+        return evaluate_model(args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic)
+    except (FileNotFoundError, ValueError) as error:
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
