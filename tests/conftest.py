@@ -3,6 +3,10 @@ multi-task env whose episode returns are known in advance."""
 
 from __future__ import annotations
 
+import sb3_mtte  # noqa: F401  (first: the package sets OpenMP's spin-wait before torch loads)
+
+# isort: split
+
 import copy
 from pathlib import Path
 from typing import Any
