@@ -129,3 +129,25 @@ def test_evaluate_refuses_bad_input_with_one_line(toy_model_zip, tmp_path, capsy
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_top_level_help_is_plain_text(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["--help"])
+    out = capsys.readouterr().out
+    assert exit_info.value.code == 0 and "sb3-mtte train --algo mtsacte" in out
+    assert "``" not in out and ":mod:" not in out and "::\n" not in out
+
+
+@pytest.mark.parametrize("module", ["evaluate", "plot", "sweep"])
+@pytest.mark.parametrize("called_as", ["console script", "module"])
+def test_usage_lines_name_the_entry_point_that_was_called(monkeypatch, capsys, module, called_as):
+    from sb3_mtte.experiments import sweep
+
+    main = {"evaluate": evaluate.main, "plot": plot.main, "sweep": sweep.main}[module]
+    argv0 = "/venv/bin/sb3-mtte" if called_as == "console script" else f"/src/sb3_mtte/{module}.py"
+    monkeypatch.setattr("sys.argv", [argv0])
+    with pytest.raises(SystemExit):
+        main(["--help"])
+    expected = f"sb3-mtte {module}" if called_as == "console script" else f"python -m sb3_mtte.{module}"
+    assert capsys.readouterr().out.startswith(f"usage: {expected} ")

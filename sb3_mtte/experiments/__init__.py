@@ -15,3 +15,12 @@
 - :mod:`~sb3_mtte.experiments.sweep`: a grid of runs on Ray Tune;
 - :mod:`~sb3_mtte.experiments.cli`: the ``sb3-mtte`` command.
 """
+
+import sys
+from pathlib import Path
+
+
+def command_prog(command: str, module: str) -> str:
+    """How the user called ``command``: ``sb3-mtte <command>`` from the console script, else
+    ``python -m <module>`` (for usage lines and errors)."""
+    return f"sb3-mtte {command}" if Path(sys.argv[0]).name == "sb3-mtte" else f"python -m {module}"

@@ -26,6 +26,7 @@ video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
+import re
 import sys
 import warnings
 from collections.abc import Callable, Sequence
@@ -52,11 +53,17 @@ COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
 """Every command of ``sb3-mtte``."""
 
 
+def plain_text(doc: str) -> str:
+    """A docstring for the terminal: Sphinx roles and inline literals as plain words, ``::`` as ``:``."""
+    doc = re.sub(r":\w+:`~?([\w.]+)`", lambda m: m.group(1).split(".")[-1] if "~" in m.group(0) else m.group(1), doc)
+    return doc.replace("``", "").replace("::\n", ":\n")
+
+
 def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: Sequence[str] | None) -> Any:
     """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None)."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] not in commands:
-        print(f"usage: {prog} {{{','.join(commands)}}} [options]\n\n{__doc__}")
+        print(f"usage: {prog} {{{','.join(commands)}}} [options]\n\n{plain_text(__doc__ or '')}")
         raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
     register_standard_env_ids()
     with warnings.catch_warnings():

@@ -30,6 +30,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import (
     PlotOptions,
     plot_bellman,
@@ -79,7 +80,7 @@ def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
     """``python -m sb3_mtte.plot RUNS_DIR [--out DIR] ...``"""
-    parser = argparse.ArgumentParser(prog="sb3-mtte plot", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=command_prog("plot", "sb3_mtte.plot"), description=__doc__.split("\n\n")[0])
     parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
     parser.add_argument("--out", default=None, help="output folder (default: RUNS_DIR itself, beside the runs)")
     parser.add_argument("--x", choices=["per-task", "total"], default="per-task", help="time axis (default per-task)")

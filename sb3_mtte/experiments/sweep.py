@@ -31,7 +31,7 @@ import numpy as np
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
-from sb3_mtte.experiments import launcher, run_info
+from sb3_mtte.experiments import command_prog, launcher, run_info
 
 SWEEP_FILE = "sweep.json"
 BUDGETS = ("full", "smoke", "cpu")
@@ -214,7 +214,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    parser = argparse.ArgumentParser(prog="python -m sb3_mtte.sweep", description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=command_prog("sweep", "sb3_mtte.sweep"), description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
     parser.add_argument("--envs", nargs="+", required=True, help="benchmarks (MT10, MT20, toy-conflict, ...)")
     parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="seeds (default 0)")
