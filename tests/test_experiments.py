@@ -151,3 +151,10 @@ def test_usage_lines_name_the_entry_point_that_was_called(monkeypatch, capsys, m
         main(["--help"])
     expected = f"sb3-mtte {module}" if called_as == "console script" else f"python -m sb3_mtte.{module}"
     assert capsys.readouterr().out.startswith(f"usage: {expected} ")
+
+
+def test_enjoy_help_lists_the_package_keys(capsys):
+    with pytest.raises(SystemExit):
+        cli.main(["enjoy", "--help"])
+    out = capsys.readouterr().out
+    assert all(key in out for key in ("mtsacte", "mtsac_mt", "mtsacte_novae", "mtsac_paco"))

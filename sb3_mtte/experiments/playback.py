@@ -63,11 +63,11 @@ def enjoy(argv: Sequence[str]) -> None:
     """``enjoy``: rl-zoo's enjoy with one sub-env per task (``--n-envs`` is set to the task count)."""
     argv = list(argv)
     env_id = flag_value(argv, "--env")
+    register_algos()  # before rl-zoo's parser lists its --algo choices
     if has_flag(argv, "-h", "--help"):
         _run_zoo_enjoy(argv, MultiTaskVecEnvFactory(1))
     if env_id is None or not register_env_id(env_id):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
-    register_algos()
     if not has_flag(argv, "-f", "--folder"):
         argv += ["-f", "logs"]
     n_tasks = env_id_n_tasks(env_id)
