@@ -273,6 +273,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--env-steps", type=int, default=0, help="vector steps of Meta-World to time (0: skip)")
     parser.add_argument("--iteration-length", type=int, default=500)
     parser.add_argument("--rep-gradient-steps", type=int, default=10)
+    parser.add_argument("--nt-estimator", choices=("virtual_step", "gradient_dot"), default="virtual_step")
     parser.add_argument(
         "--end-to-end",
         type=int,
@@ -292,14 +293,15 @@ def main(argv: list[str] | None = None) -> dict:
     for n_tasks in args.n_tasks:
         entry = bench_n_tasks(n_tasks, args.batch_per_task, device, args.repeats, args.net_arch)
         seconds = entry["seconds"]
-        recompute = seconds["MTSACTE-recompute-virtual_step"]
+        recompute = seconds[f"MTSACTE-recompute-{args.nt_estimator}"]
         env_step = 0.0
         if args.env_steps:
             env_rate = bench_env_steps(n_tasks, args.env_steps)
             entry["env_vector_steps_per_s"] = round(env_rate, 1)
             entry["env_steps_per_s"] = round(env_rate * n_tasks, 1)
             env_step = 1 / env_rate
-        # Per vector step at the default schedule: env step + update (+ R recomputations every H steps).
+        # Per vector step: env step + update (+ R recomputations by the chosen estimator every H steps).
+        entry["schedule"] = {k: getattr(args, k) for k in ("iteration_length", "rep_gradient_steps", "nt_estimator")}
         mtsac_step = env_step + seconds["MTSAC-MT"]
         te_step = env_step + seconds["MTSACTE-update"] + args.rep_gradient_steps * recompute / args.iteration_length
         entry["train_step_seconds"] = {

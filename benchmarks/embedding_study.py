@@ -52,6 +52,18 @@ GRID: dict[str, dict[str, Any]] = {
     "c_vae_1e-4": {"c_vae": 1e-4},
     "init_0.1_c_vae_1e-3": {"c_vae": 1e-3, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_c_vae_1e-4": {"c_vae": 1e-4, "policy_kwargs": {"z_init_std": 0.1}},
+    "init_0.01_c_vae_1e-4": {"c_vae": 1e-4, "policy_kwargs": {"z_init_std": 0.01}},
+    "init_0.1_c_vae_1e-4_steps_50_first_order": {
+        "c_vae": 1e-4,
+        "rep_gradient_steps": 50,
+        "nt_estimator": "gradient_dot",
+        "policy_kwargs": {"z_init_std": 0.1},
+    },
+    "init_0.1_c_vae_1e-4_rep_lr_1e-3": {
+        "c_vae": 1e-4,
+        "rep_learning_rate": 1e-3,
+        "policy_kwargs": {"z_init_std": 0.1},
+    },
     "init_0.1_c_vae_0": {"c_vae": 0.0, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_alpha_1e-2": {"nt_step_size": 1e-2, "policy_kwargs": {"z_init_std": 0.1}},
     # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task
@@ -136,6 +148,13 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     if args.eval_episodes:
         success = evaluate_success(model, args.benchmark, episodes_per_task=args.eval_episodes, seed=args.seed + 1000)
         result["success"] = success.as_dict()
+        if isinstance(model, MTSACTE):  # the same model, deterministic actions on the other choice of z
+            other = "sample" if model.policy.deterministic_z == "mean" else "mean"
+            model.policy.deterministic_z = other
+            success = evaluate_success(
+                model, args.benchmark, episodes_per_task=args.eval_episodes, seed=args.seed + 1000
+            )
+            result[f"success_deterministic_z_{other}"] = success.as_dict()
     env.close()
     return result
 

@@ -6,6 +6,7 @@ import configparser
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 from conftest import ENV, tiny_train
@@ -80,7 +81,7 @@ def test_console_script_is_declared_and_dispatches(capsys):
     config.read(ROOT / "setup.cfg")
     scripts = config["options.entry_points"]["console_scripts"].strip()
     assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:main"
-    assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "plot", "sweep"}
+    assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "record", "plot", "sweep"}
     for command in cli.COMMANDS:
         with pytest.raises(SystemExit) as exit_info:
             cli.main([command, "--help"])
@@ -158,3 +159,26 @@ def test_enjoy_help_lists_the_package_keys(capsys):
         cli.main(["enjoy", "--help"])
     out = capsys.readouterr().out
     assert all(key in out for key in ("mtsacte", "mtsac_mt", "mtsacte_novae", "mtsac_paco"))
+
+
+def test_record_of_a_finished_run(tmp_path):
+    """A trained and evaluated run leaves one small JSON record with its curve, final per-task success, settings
+    and commit; runs without a final evaluation leave none."""
+    from sb3_mtte.experiments import records
+
+    run = tiny_train(tmp_path / "runs", "mtsacte", "-params", "learning_starts:100", "--eval-freq", "100", steps=200)
+    with pytest.raises(SystemExit):
+        records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])  # not evaluated yet
+    final = evaluate.main([str(run / f"{ENV}.zip"), "--episodes", "2"])
+    (path,) = records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    record = json.loads(path.read_text())
+    info = read_run_info(run)
+    assert path.name == f"{ENV}_mtsacte_seed{info['seed']}.json"
+    assert record["final"]["per_task"] == final["per_task"] and record["final"]["episodes_per_task"] == 2
+    assert record["hyperparams"] == info["hyperparams"] and record["git"] == info["git"]
+    evaluations = np.load(run / "evaluations.npz")
+    assert record["curve"]["env_steps"] == evaluations["timesteps"].tolist()
+    np.testing.assert_allclose(record["curve"]["success_rate"], evaluations["success_rate"], atol=1e-6)
+    nt_lines = (run / "negative_transfer.jsonl").read_text().splitlines()
+    assert len(record["representation"]["task_probe_accuracy"]) == len(nt_lines)
+    assert records.read_records(tmp_path / "records") == [record]

@@ -1,4 +1,4 @@
-"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|plot|sweep`` (and ``python -m sb3_mtte.zoo``).
+"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|record|plot|sweep`` (and ``python -m sb3_mtte.zoo``).
 
 Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
 
@@ -8,6 +8,7 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
     sb3-mtte enjoy --algo mtsacte --env MT10 -f logs --no-render -n 2000
     sb3-mtte record_video --algo mtsacte --env MT10 -f logs [-o VIDEO_DIR] [--episodes 1] [--tile]
     sb3-mtte evaluate logs/mtsacte/MT10_1/MT10.zip --episodes 50
+    sb3-mtte record logs --out records/                    # one small JSON per finished run
     sb3-mtte plot logs --out figures/
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
@@ -32,7 +33,7 @@ import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
 
-from sb3_mtte.experiments import evaluate, plot, sweep
+from sb3_mtte.experiments import evaluate, plot, records, sweep
 from sb3_mtte.experiments.env_ids import register_standard_env_ids
 from sb3_mtte.experiments.launcher import train
 from sb3_mtte.experiments.playback import enjoy, record_video
@@ -48,6 +49,7 @@ COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
     **ZOO_COMMANDS,
     "evaluate": evaluate.main,
     "plot": plot.main,
+    "record": records.main,
     "sweep": sweep.main,
 }
 """Every command of ``sb3-mtte``."""
