@@ -59,6 +59,7 @@ GRID: dict[str, dict[str, Any]] = {
         "nt_estimator": "gradient_dot",
         "policy_kwargs": {"z_init_std": 0.1},
     },
+    "init_0.1_c_vae_1e-4_steps_50": {"c_vae": 1e-4, "rep_gradient_steps": 50, "policy_kwargs": {"z_init_std": 0.1}},
     "init_0.1_c_vae_1e-4_rep_lr_1e-3": {
         "c_vae": 1e-4,
         "rep_learning_rate": 1e-3,
