@@ -26,55 +26,36 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_mtte import MTSAC, MTSACTE, evaluate_success, make_mt_env
 from sb3_mtte.experiments.configs import zoo_hyperparameters
 
-EVERY_STEP = {"iteration_length": 1, "rep_gradient_steps": 1}
+FORMER = {"c_vae": 1e-2, "policy_kwargs": {"z_init_std": None}}
+"""The defaults before this study: E_phi at PyTorch's initialisation (std ~1), c_vae 1e-2."""
+
+
+def former(policy_kwargs: dict[str, Any] | None = None, **factors: Any) -> dict[str, Any]:
+    """The former defaults with some factors changed."""
+    return {**FORMER, **factors, "policy_kwargs": {**FORMER["policy_kwargs"], **(policy_kwargs or {})}}
+
+
+FIRST_ORDER_50 = {"rep_gradient_steps": 50, "nt_estimator": "gradient_dot"}
 GRID: dict[str, dict[str, Any]] = {
-    "paper_defaults": {},
+    "chosen_defaults": {},
+    "former_defaults": former(),
     "sac_mt": {},
-    # schedule: J^rep updates per vector step
-    "rep_every_step": EVERY_STEP,
-    "rep_every_step_first_order": {**EVERY_STEP, "nt_estimator": "gradient_dot"},
-    "rep_steps_100": {"rep_gradient_steps": 100},
-    "rep_steps_50_first_order": {"rep_gradient_steps": 50, "nt_estimator": "gradient_dot"},
-    # phi's learning rate, alpha, c_vae
-    "rep_lr_1e-3": {"rep_learning_rate": 1e-3},
-    "alpha_1e-2": {"nt_step_size": 1e-2},
-    "c_vae_1e-3": {"c_vae": 1e-3},
-    "c_vae_1e-1": {"c_vae": 1e-1},
-    # E_phi's initial standard deviation and what deterministic predict feeds the actor
-    "z_init_std_0.1": {"policy_kwargs": {"z_init_std": 0.1}},
-    "deterministic_z_sample": {"policy_kwargs": {"deterministic_z": "sample"}},
+    # one factor at a time from the former defaults
+    "rep_steps_50_first_order": former(**FIRST_ORDER_50),
+    "rep_lr_1e-3": former(rep_learning_rate=1e-3),
+    "alpha_1e-2": former(nt_step_size=1e-2),
+    "c_vae_1e-3": former(c_vae=1e-3),
+    "z_init_std_0.1": former({"z_init_std": 0.1}),
     # combinations
-    "every_step_first_order_init_0.1": {
-        **EVERY_STEP,
-        "nt_estimator": "gradient_dot",
-        "policy_kwargs": {"z_init_std": 0.1},
-    },
-    "c_vae_1e-4": {"c_vae": 1e-4},
-    "init_0.1_c_vae_1e-3": {"c_vae": 1e-3, "policy_kwargs": {"z_init_std": 0.1}},
-    "init_0.1_c_vae_1e-4": {"c_vae": 1e-4, "policy_kwargs": {"z_init_std": 0.1}},
-    "init_0.01_c_vae_1e-4": {"c_vae": 1e-4, "policy_kwargs": {"z_init_std": 0.01}},
-    "init_0.1_c_vae_1e-4_steps_50_first_order": {
-        "c_vae": 1e-4,
-        "rep_gradient_steps": 50,
-        "nt_estimator": "gradient_dot",
-        "policy_kwargs": {"z_init_std": 0.1},
-    },
-    "init_0.1_c_vae_1e-4_steps_50": {"c_vae": 1e-4, "rep_gradient_steps": 50, "policy_kwargs": {"z_init_std": 0.1}},
-    "init_0.1_c_vae_1e-4_rep_lr_1e-3": {
-        "c_vae": 1e-4,
-        "rep_learning_rate": 1e-3,
-        "policy_kwargs": {"z_init_std": 0.1},
-    },
-    "init_0.1_c_vae_0": {"c_vae": 0.0, "policy_kwargs": {"z_init_std": 0.1}},
-    "init_0.1_alpha_1e-2": {"nt_step_size": 1e-2, "policy_kwargs": {"z_init_std": 0.1}},
+    "init_0.1_rep_steps_50_first_order": former({"z_init_std": 0.1}, **FIRST_ORDER_50),
+    "init_0.1_alpha_1e-2": former({"z_init_std": 0.1}, nt_step_size=1e-2),
+    "init_0.1_c_vae_1e-4": former({"z_init_std": 0.1}, c_vae=1e-4),
+    "init_0.1_c_vae_0": former({"z_init_std": 0.1}, c_vae=0.0),
+    "init_0.1_c_vae_1e-4_rep_lr_1e-3": former({"z_init_std": 0.1}, c_vae=1e-4, rep_learning_rate=1e-3),
+    "init_0.1_c_vae_1e-4_rep_steps_50_first_order": former({"z_init_std": 0.1}, c_vae=1e-4, **FIRST_ORDER_50),
+    "init_0.01_c_vae_1e-4": former({"z_init_std": 0.01}, c_vae=1e-4),
     # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task
-    "init_0.1_c_vae_warmup_5k": {"c_vae_warmup_per_task": 5000, "policy_kwargs": {"z_init_std": 0.1}},
-    "c_vae_warmup_5k": {"c_vae_warmup_per_task": 5000},
-    "steps_50_first_order_init_0.1": {
-        "rep_gradient_steps": 50,
-        "nt_estimator": "gradient_dot",
-        "policy_kwargs": {"z_init_std": 0.1},
-    },
+    "c_vae_warmup_5k": former(c_vae_warmup_per_task=5000),
 }
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
 MTSACTE_ONLY = ("use_vae", "use_topk", "n_select", "top_k", "iteration_length", "rep_gradient_steps")

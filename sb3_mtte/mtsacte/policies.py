@@ -57,7 +57,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
     :param z_dim: size of the representation z (8 in the paper).
     :param rep_learning_rate: learning rate of the encoder and decoder (J^rep).
     :param z_init_std: E_phi's standard deviation at initialisation (the bias of its log-std head is set to
-        ``log(z_init_std)``); None keeps PyTorch's initialisation (a standard deviation of about 1).
+        ``log(z_init_std)``; 0.01, where E_phi's mean, which already differs between tasks, shows in the sampled z);
+        None keeps PyTorch's initialisation (a standard deviation of about 1, where z starts as noise).
     :param deterministic_z: what ``predict(deterministic=True)`` feeds the actor: ``"mean"``, E_phi's mean, or
         ``"sample"``, a sample of E_phi as in training.
     :param n_critics: twin critics per task.
@@ -76,7 +77,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
         activation_fn: type[nn.Module] = nn.ReLU,
         z_dim: int = 8,
         rep_learning_rate: float = 3e-4,
-        z_init_std: float | None = None,
+        z_init_std: float | None = 0.01,
         deterministic_z: str = "mean",
         n_critics: int = 2,
         critic_arch: str = "per_task",
