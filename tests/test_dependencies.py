@@ -9,12 +9,13 @@ from importlib.metadata import PackageNotFoundError, distribution, packages_dist
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
-# What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.plot` and the `sb3-mtte`
+# What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.record`, `sb3_mtte.plot` and the `sb3-mtte`
 # command import when they run (the `[ray]` extra of `sweep` is imported only when a sweep runs).
 COMMAND_MODULES = [
     "sb3_mtte",
     "sb3_mtte.zoo",
     "sb3_mtte.evaluate",
+    "sb3_mtte.record",
     "sb3_mtte.plot",
     "sb3_mtte.experiments.cli",
     "rl_zoo3.train",
