@@ -87,11 +87,12 @@ def test_evaluate_cli_writes_json(zoo_runs, capsys):
     assert json.loads((zoo_runs / "mtsac_mt" / f"{ENV}_1" / "success.json").read_text())["algorithm"] == "MTSAC"
 
 
-def test_evaluate_needs_an_env_without_run_info(tmp_path, zoo_runs):
+def test_evaluate_needs_an_env_without_run_info(tmp_path, zoo_runs, capsys):
     model = tmp_path / "model.zip"
     model.write_bytes((zoo_runs / "mtsac_mt" / f"{ENV}_1" / f"{ENV}.zip").read_bytes())
-    with pytest.raises(ValueError, match="--env"):
+    with pytest.raises(SystemExit) as exit_info:
         evaluate.main([str(model)])
+    assert exit_info.value.code == 2 and "pass --env" in capsys.readouterr().err
     evaluate.main([str(model), "--env", ENV, "--episodes", "1", "--out", str(tmp_path / "r.json")])
     assert json.loads((tmp_path / "r.json").read_text())["benchmark"] == ENV
 
