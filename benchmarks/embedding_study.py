@@ -54,6 +54,9 @@ GRID: dict[str, dict[str, Any]] = {
     "init_0.1_c_vae_1e-4_rep_lr_1e-3": former({"z_init_std": 0.1}, c_vae=1e-4, rep_learning_rate=1e-3),
     "init_0.1_c_vae_1e-4_rep_steps_50_first_order": former({"z_init_std": 0.1}, c_vae=1e-4, **FIRST_ORDER_50),
     "init_0.01_c_vae_1e-4": former({"z_init_std": 0.01}, c_vae=1e-4),
+    # E_phi's mean at the prior's scale from the start (chosen defaults plus z_mean_init_gain)
+    "mean_gain_50": {"policy_kwargs": {"z_mean_init_gain": 50.0}},
+    "mean_gain_10": {"policy_kwargs": {"z_mean_init_gain": 10.0}},
     # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task
     "c_vae_warmup_5k": former(c_vae_warmup_per_task=5000),
 }

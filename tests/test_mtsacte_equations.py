@@ -667,6 +667,21 @@ def test_initial_std_of_the_embedding(toy_env):
         MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"z_init_std": 0.0}))
 
 
+def test_mean_gain_of_the_embedding(toy_env):
+    """z_mean_init_gain multiplies E_phi's initial mean (every state and task) and leaves its log-std."""
+    kwargs = {"net_arch": [16, 16], "z_dim": 3}
+    plain = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs=kwargs))
+    scaled = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 7.0}))
+    obs = th.as_tensor(toy_env.reset())
+    with th.no_grad():
+        mean_plain, log_std_plain = loop_split(plain.policy.encoder(obs))
+        mean_scaled, log_std_scaled = loop_split(scaled.policy.encoder(obs))
+    th.testing.assert_close(mean_scaled, 7.0 * mean_plain)
+    th.testing.assert_close(log_std_scaled, log_std_plain)
+    with pytest.raises(ValueError, match="z_mean_init_gain"):
+        MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"z_mean_init_gain": 0.0}))
+
+
 def test_deterministic_predict_with_a_sampled_z(toy_env):
     """deterministic_z="sample": deterministic predict feeds the actor a sample of E_phi (as in training) and takes
     the mean action: over many copies of one observation the actions vary, and their z has E_phi's std."""

@@ -59,6 +59,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
     :param z_init_std: E_phi's standard deviation at initialisation (the bias of its log-std head is set to
         ``log(z_init_std)``; 0.01, where E_phi's mean, which already differs between tasks, shows in the sampled z);
         None keeps PyTorch's initialisation (a standard deviation of about 1, where z starts as noise).
+    :param z_mean_init_gain: factor on the initial weights and bias of E_phi's mean head (1: PyTorch's
+        initialisation, where the tasks' means start about 0.02 apart; 50 puts them about 1 apart, the prior's scale).
     :param deterministic_z: what ``predict(deterministic=True)`` feeds the actor: ``"mean"``, E_phi's mean, or
         ``"sample"``, a sample of E_phi as in training.
     :param n_critics: twin critics per task.
@@ -78,6 +80,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
         z_dim: int = 8,
         rep_learning_rate: float = 3e-4,
         z_init_std: float | None = 0.01,
+        z_mean_init_gain: float = 1.0,
         deterministic_z: str = "mean",
         n_critics: int = 2,
         critic_arch: str = "per_task",
@@ -88,6 +91,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
             raise ValueError("MTSACTE uses one twin critic per task (critic_arch='per_task').")
         if z_init_std is not None and not z_init_std > 0:
             raise ValueError(f"z_init_std must be a positive standard deviation or None, got {z_init_std}.")
+        if not z_mean_init_gain > 0:
+            raise ValueError(f"z_mean_init_gain must be a positive factor, got {z_mean_init_gain}.")
         if deterministic_z not in DETERMINISTIC_Z:
             raise ValueError(f"deterministic_z must be one of {DETERMINISTIC_Z}, got {deterministic_z!r}.")
         super().__init__(
@@ -101,11 +106,13 @@ class MTSACTEPolicy(MultiTaskPolicy):
             optimizer_kwargs,
         )
         self.z_dim, self.rep_learning_rate = z_dim, rep_learning_rate
-        self.z_init_std, self.deterministic_z = z_init_std, deterministic_z
+        self.z_init_std, self.z_mean_init_gain, self.deterministic_z = z_init_std, z_mean_init_gain, deterministic_z
         act, state_dim, action_dim = activation_fn, self.state_dim, self.action_dim
         self.encoder = mlp(state_dim + n_tasks, self.arch("embed"), 2 * z_dim, act)
-        if z_init_std is not None:
-            with th.no_grad():
+        with th.no_grad():
+            self.encoder[-1].weight[:z_dim].mul_(z_mean_init_gain)
+            self.encoder[-1].bias[:z_dim].mul_(z_mean_init_gain)
+            if z_init_std is not None:
                 self.encoder[-1].bias[z_dim:].fill_(math.log(z_init_std))
         self.decoder = mlp(z_dim + n_tasks, self.arch("decoder"), state_dim, act)
         self.actor = EmbeddingActor(state_dim, z_dim, action_dim, n_tasks, self.arch("pi"), act)
@@ -148,6 +155,7 @@ class MTSACTEPolicy(MultiTaskPolicy):
             "z_dim": self.z_dim,
             "rep_learning_rate": self.rep_learning_rate,
             "z_init_std": self.z_init_std,
+            "z_mean_init_gain": self.z_mean_init_gain,
             "deterministic_z": self.deterministic_z,
         }
 
