@@ -650,6 +650,32 @@ def test_a_step_whenever_j_rep_has_a_term(toy_env, monkeypatch, use_vae, harmful
     assert len(steps) == 3
 
 
+@pytest.mark.parametrize("estimator", ["virtual_step", "gradient_dot"])
+def test_the_encoder_learns_only_through_the_virtual_step(toy_env, monkeypatch, estimator):
+    """With the actor blind to z at theta (its z-input weights zero) and no VAE term, mean_i J_i(theta, phi) does not
+    depend on phi: phi can learn only because J^NT evaluates the tasks at theta^k = theta + alpha grad J_k (Eq. 11),
+    whose z-input weights are not zero. Replacing J^NT by mean_i J_i(theta, phi) leaves the encoder where it was."""
+    kwargs = small_model_kwargs(rep_gradient_steps=1, use_vae=False, nt_step_size=1e-2, nt_estimator=estimator)
+    model = MTSACTE("MlpPolicy", toy_env, **kwargs)
+    model.learn(200)
+    with th.no_grad():
+        model.actor.net[0].weight[:, model.policy.state_dim :] = 0.0
+    selection = TaskSelection(
+        th.zeros(N_TASKS, N_TASKS),
+        th.zeros(N_TASKS, dtype=th.long),
+        th.tensor([True, True, True, False]),
+        th.full((N_TASKS,), 1.0 / N_TASKS),
+    )
+    monkeypatch.setattr(model, "_select", lambda transfer, statistics: selection)
+    captured = _capture_applied_gradients(model, monkeypatch)
+    before = {k: v.clone() for k, v in model.encoder.state_dict().items()}
+    model.update_representation(16)
+    gradient_norm = th.cat([g.flatten() for g in captured["enc"].values()]).norm()
+    assert gradient_norm > 1e-6
+    moved = [name for name, value in model.encoder.state_dict().items() if not th.equal(value, before[name])]
+    assert moved
+
+
 def test_initial_std_of_the_embedding(toy_env):
     """z_init_std sets E_phi's standard deviation at initialisation (every state and task), leaving its mean."""
     default = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
