@@ -26,8 +26,8 @@ from stable_baselines3.common.callbacks import BaseCallback
 from sb3_mtte import MTSAC, MTSACTE, evaluate_success, make_mt_env
 from sb3_mtte.experiments.configs import zoo_hyperparameters
 
-FORMER = {"c_vae": 1e-2, "policy_kwargs": {"z_init_std": None}}
-"""The defaults before this study: E_phi at PyTorch's initialisation (std ~1), c_vae 1e-2."""
+FORMER = {"c_vae": 1e-2, "policy_kwargs": {"z_init_std": None, "z_mean_init_gain": 1.0}}
+"""The defaults before this study: E_phi at PyTorch's initialisation (std ~1, mean gain 1), c_vae 1e-2."""
 
 
 def former(policy_kwargs: dict[str, Any] | None = None, **factors: Any) -> dict[str, Any]:
@@ -53,8 +53,8 @@ GRID: dict[str, dict[str, Any]] = {
     "init_0.1_c_vae_0": former({"z_init_std": 0.1}, c_vae=0.0),
     "init_0.1_c_vae_1e-4_rep_lr_1e-3": former({"z_init_std": 0.1}, c_vae=1e-4, rep_learning_rate=1e-3),
     "init_0.1_c_vae_1e-4_rep_steps_50_first_order": former({"z_init_std": 0.1}, c_vae=1e-4, **FIRST_ORDER_50),
-    "init_0.01_c_vae_1e-4": former({"z_init_std": 0.01}, c_vae=1e-4),
-    # E_phi's mean at the prior's scale from the start (chosen defaults plus z_mean_init_gain)
+    "init_0.01_c_vae_1e-4": former({"z_init_std": 0.01}, c_vae=1e-4),  # the defaults before the mean gain
+    # E_phi's mean head scaled at initialisation, from std 0.01 and c_vae 1e-4 (gain 50: the chosen defaults)
     "mean_gain_50": {"policy_kwargs": {"z_mean_init_gain": 50.0}},
     "mean_gain_10": {"policy_kwargs": {"z_mean_init_gain": 10.0}},
     # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task

@@ -696,7 +696,7 @@ def test_initial_std_of_the_embedding(toy_env):
 def test_mean_gain_of_the_embedding(toy_env):
     """z_mean_init_gain multiplies E_phi's initial mean (every state and task) and leaves its log-std."""
     kwargs = {"net_arch": [16, 16], "z_dim": 3}
-    plain = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs=kwargs))
+    plain = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 1.0}))
     scaled = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 7.0}))
     obs = th.as_tensor(toy_env.reset())
     with th.no_grad():
