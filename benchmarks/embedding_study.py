@@ -57,12 +57,10 @@ GRID: dict[str, dict[str, Any]] = {
     # E_phi's mean head scaled at initialisation, from std 0.01 and c_vae 1e-4 (gain 50: the chosen defaults)
     "mean_gain_50": {"policy_kwargs": {"z_mean_init_gain": 50.0}},
     "mean_gain_10": {"policy_kwargs": {"z_mean_init_gain": 10.0}},
-    # beyond the paper: the VAE term's weight warms up from 0 over 5k env steps per task
-    "c_vae_warmup_5k": former(c_vae_warmup_per_task=5000),
 }
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
 MTSACTE_ONLY = ("use_vae", "use_topk", "n_select", "top_k", "iteration_length", "rep_gradient_steps")
-MTSACTE_ONLY += ("nt_step_size", "c_vae", "rep_learning_rate", "nt_estimator", "c_vae_warmup_steps")
+MTSACTE_ONLY += ("nt_step_size", "c_vae", "rep_learning_rate", "nt_estimator")
 
 
 def settings(name: str, n_tasks: int, per_task_steps: int) -> tuple[type, dict[str, Any]]:
@@ -73,8 +71,6 @@ def settings(name: str, n_tasks: int, per_task_steps: int) -> tuple[type, dict[s
     kwargs.update(buffer_size=n_tasks * per_task_steps, learning_starts=n_tasks * 1500, n_select=n_tasks // 2)
     overrides = dict(GRID[name])
     kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], **overrides.pop("policy_kwargs", {})}
-    if "c_vae_warmup_per_task" in overrides:
-        overrides["c_vae_warmup_steps"] = n_tasks * overrides.pop("c_vae_warmup_per_task")
     kwargs.update(overrides)
     if name == "sac_mt":
         return MTSAC, {key: value for key, value in kwargs.items() if key not in MTSACTE_ONLY}

@@ -335,7 +335,7 @@ def test_invalid_hyperparameters(toy_env):
     with pytest.raises(ValueError, match="iteration_length"):
         MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(iteration_length=0))
     for bad in ({"nt_step_size": -1e-3}, {"c_vae": -1.0}, {"rep_learning_rate": 0.0}):
-        with pytest.raises(ValueError, match="c_vae and c_vae_warmup_steps must be >= 0 and rep_learning_rate > 0"):
+        with pytest.raises(ValueError, match="nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0"):
             MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(**bad))
 
 
@@ -518,7 +518,11 @@ def test_training_singles_out_the_conflicting_task(seed, monkeypatch):
     top-K batch): averaged over every recomputation of the run, mu is largest and w smallest for the conflicting task
     (index 3), which plain SAC with an encoder would not single out. Measured at this budget: mean mu of tasks 0..3 =
     [1.49, 1.47, 1.52, 1.85], [1.54, 1.56, 1.53, 1.71], [1.45, 1.36, 1.46, 1.77] for seeds 0, 1, 2 (and the same
-    ordering for seeds 3, 4, 5); about 15 s per seed on one CPU core."""
+    ordering for seeds 3, 4, 5); about 15 s per seed on one CPU core.
+
+    E_phi's mean head keeps PyTorch's scale (z_mean_init_gain=1), so that the tasks share the actor at the start:
+    with the default gain of 50, z separates the tasks from the first step, the tasks' gradients interfere less
+    and mu of seed 0 no longer singles the conflicting task out ([1.27, 1.38, 1.38, 1.35])."""
     model = MTSACTE(
         "MlpPolicy",
         make_mt_env("toy-conflict", seed=seed),
@@ -533,7 +537,7 @@ def test_training_singles_out_the_conflicting_task(seed, monkeypatch):
         iteration_length=50,
         rep_gradient_steps=10,
         rep_learning_rate=1e-3,
-        policy_kwargs={"net_arch": [64, 64]},
+        policy_kwargs={"net_arch": [64, 64], "z_mean_init_gain": 1.0},
         seed=seed,
         device="cpu",
     )

@@ -241,25 +241,3 @@ def test_transfer_statistics_against_numpy():
 def test_unknown_nt_measure(toy_env):
     with pytest.raises(ValueError, match="nt_measure"):
         MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(nt_measure="median"))
-
-
-def test_c_vae_warmup_rises_linearly_then_holds(toy_env, monkeypatch):
-    """c_vae_warmup_steps = W: J^rep uses c_vae * min(1, t / W) at env step t (t = num_timesteps); 0 is the paper."""
-    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(c_vae=0.2, c_vae_warmup_steps=400))
-    for steps, expected in ((0, 0.0), (100, 0.05), (200, 0.1), (400, 0.2), (1000, 0.2)):
-        model.num_timesteps = steps
-        assert model.current_c_vae() == pytest.approx(expected, rel=1e-12)
-    used = []
-    original = mtsacte_module.representation_gradients
-    monkeypatch.setattr(
-        mtsacte_module,
-        "representation_gradients",
-        lambda *args, **kwargs: used.append((model.num_timesteps, kwargs["c_vae"])) or original(*args, **kwargs),
-    )
-    model.learn(240)
-    assert used and all(c == pytest.approx(0.2 * t / 400, rel=1e-12) for t, c in used)
-    paper = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(c_vae=0.2))
-    paper.num_timesteps = 0
-    assert paper.current_c_vae() == 0.2
-    with pytest.raises(ValueError, match="c_vae_warmup_steps"):
-        MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(c_vae_warmup_steps=-1))

@@ -60,10 +60,8 @@ class MTSACTE(MTSAC):
         above float32 rounding of objectives of Q-value scale.
     :param c_vae: c_vae of Eq. 14, weight of the VAE term (1e-4). Adam moves E_phi's log-std along the KL's
         consistently signed gradient whatever its size, while J^NT's pull on it is second order in the std: at 1e-2
-        the std returned to the prior within about 20 J^rep steps on the development benchmark and z lost the task;
-        at 1e-4 it stays small (README, "How z comes to carry the task").
-    :param c_vae_warmup_steps: beyond the paper, opt-in: the VAE term's weight rises linearly from 0 to ``c_vae``
-        over this many env steps (all tasks); 0 (default): ``c_vae`` from the start, as in the paper.
+        the std returned to the prior within about 20 J^rep steps on the development benchmark and z lost the task
+        (docs/embedding_study.md).
     :param rep_learning_rate: learning rate delta of phi and the decoder (3e-4).
     :param iteration_length: H, vector steps per iteration (500, Meta-World's horizon).
     :param rep_gradient_steps: J^rep updates at the start of every iteration (10).
@@ -107,7 +105,6 @@ class MTSACTE(MTSAC):
         q_loss_clip: float | None = 2000.0,
         nt_step_size: float = 1e-3,
         c_vae: float = 1e-4,
-        c_vae_warmup_steps: int = 0,
         rep_learning_rate: float = 3e-4,
         iteration_length: int = 500,
         rep_gradient_steps: int = 10,
@@ -135,8 +132,8 @@ class MTSACTE(MTSAC):
             raise ValueError(f"top_k (K) must be at least 1, got {top_k}.")
         if nt_estimator not in ESTIMATORS:
             raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {nt_estimator!r}.")
-        if nt_step_size < 0 or c_vae < 0 or rep_learning_rate <= 0 or c_vae_warmup_steps < 0:
-            raise ValueError("nt_step_size, c_vae and c_vae_warmup_steps must be >= 0 and rep_learning_rate > 0.")
+        if nt_step_size < 0 or c_vae < 0 or rep_learning_rate <= 0:
+            raise ValueError("nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0.")
         if not (nt_chunk_size in ("auto", None) or (isinstance(nt_chunk_size, int) and nt_chunk_size >= 1)):
             raise ValueError(f"nt_chunk_size must be 'auto', None or a positive int, got {nt_chunk_size!r}.")
         if nt_measure not in NT_MEASURES:
@@ -178,7 +175,6 @@ class MTSACTE(MTSAC):
         self.n_select = n_select
         self.top_k, self.use_topk, self.use_vae = top_k, use_topk, use_vae
         self.nt_step_size, self.c_vae, self.rep_learning_rate = nt_step_size, c_vae, rep_learning_rate
-        self.c_vae_warmup_steps = c_vae_warmup_steps
         self.iteration_length, self.rep_gradient_steps = iteration_length, rep_gradient_steps
         self.nt_estimator, self.nt_chunk_size = nt_estimator, nt_chunk_size
         self.nt_measure = nt_measure
@@ -271,7 +267,7 @@ class MTSACTE(MTSAC):
                 objectives,
                 harmful_tasks,
                 step_size=self.nt_step_size,
-                c_vae=self.current_c_vae(),
+                c_vae=self.c_vae,
                 use_vae=self.use_vae,
                 estimator=self.nt_estimator,
             )
@@ -285,14 +281,8 @@ class MTSACTE(MTSAC):
             self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
 
-    def current_c_vae(self) -> float:
-        """The VAE term's weight now: ``c_vae``, or its linear warm-up over ``c_vae_warmup_steps`` env steps."""
-        if self.c_vae_warmup_steps <= 0:
-            return self.c_vae
-        return self.c_vae * min(1.0, self.num_timesteps / self.c_vae_warmup_steps)
-
     def _has_vae_term(self) -> bool:
-        return self.use_vae and self.current_c_vae() > 0
+        return self.use_vae and self.c_vae > 0
 
     def _select(self, transfer: th.Tensor, statistics: TransferStatistics) -> TaskSelection:
         """mu, C_s and w (Eq. 6-8) from this batch's matrix or from the iteration's mean (``nt_measure``)."""
@@ -326,7 +316,6 @@ class MTSACTE(MTSAC):
         self.logger.record("rep/task_probe_accuracy", self.task_probe_accuracy)
         self.logger.record("rep/task_probe_accuracy_of_mean", self.task_probe_accuracy_of_mean)
         self.logger.record("rep/z_std", self.z_std)
-        self.logger.record("rep/c_vae", self.current_c_vae())
         for i in range(self.n_tasks):
             name = self._task_name(i)
             self.logger.record(task_log_key("nt/mu", i, name), int(mu[i]))
