@@ -1,10 +1,13 @@
 """PCGrad and CAGrad: the maths against plain loops and brute force, and the update they put into MTSAC."""
 
+import dataclasses
+import fnmatch
 import itertools
 
 import numpy as np
 import pytest
 import torch as th
+from conftest import ENV, tiny_train
 
 from sb3_mtte import MTSAC, make_mt_env
 from sb3_mtte.common.gradient_surgery import (
@@ -15,9 +18,10 @@ from sb3_mtte.common.gradient_surgery import (
     per_task_gradients,
     per_task_gradients_of_rows,
 )
-from sb3_mtte.experiments.results import table1
-from sb3_mtte.experiments.variants import VARIANTS
+from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.variants import CAGRAD_C, VARIANTS
 
+ZOO_ONLY = {"n_timesteps", "n_envs", "eval_freq", "eval_episodes", "save_freq"}
 CONFLICTING_3 = np.array([[1.0, 0.2, 0.0], [-0.8, 1.0, 0.3], [0.1, -1.0, 0.5]])
 
 
@@ -56,6 +60,22 @@ def test_pcgrad_orders_are_random_permutations_of_the_other_tasks():
             assert sorted(row.tolist()) == sorted(set(range(3)) - {i})
         seen.add(tuple(orders[0]))
     assert seen == {(1, 2), (2, 1)}
+
+
+def test_pcgrad_draws_every_task_its_own_order():
+    """Algorithm 1 orders the other tasks for every task on its own: with 3 tasks, all 2^3 combinations of the three
+    orders occur, equally often. Orders cut from one permutation of all tasks would never give the cyclic ones
+    (task 0 takes 1 before 2, task 1 takes 2 before 0, task 2 takes 0 before 1)."""
+    generator = th.Generator().manual_seed(0)
+    draws = 4000
+    counts: dict[tuple, int] = {}
+    for _ in range(draws):
+        combination = tuple(tuple(row) for row in pcgrad_orders(3, generator).tolist())
+        counts[combination] = counts.get(combination, 0) + 1
+    assert len(counts) == 8
+    assert ((1, 2), (2, 0), (0, 1)) in counts and ((2, 1), (0, 2), (1, 0)) in counts
+    for count in counts.values():
+        assert abs(count / draws - 1 / 8) < 0.03
 
 
 def test_pcgrad_order_matters_with_three_conflicting_tasks():
@@ -202,8 +222,11 @@ class RecordingMTSAC(MTSAC):
         return result
 
 
+SURGERED = {"actor loss", "critic loss", "entropy coefficient loss"}
+
+
 @pytest.mark.parametrize(
-    "method, critic_arch, policy",
+    "method, arch, policy",
     [
         ("pcgrad", "per_task", "MlpPolicy"),
         ("cagrad", "per_task", "MlpPolicy"),
@@ -212,12 +235,15 @@ class RecordingMTSAC(MTSAC):
         ("pcgrad", "per_task", "MultiHeadPolicy"),
     ],
 )
-def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic_arch, policy):
-    """The gradient in ``.grad`` before Adam's step is the method's combination of per-task gradients from a loop of
-    backward passes, and the actor's parameter change is Adam's first step on it; the critic is surgered too when
-    shared, not when per task (its tasks share no parameter). SAC-MT's actor takes the one-backward-pass gradients,
-    a multi-head actor (per-task heads) the generic ones."""
-    model = small_model(policy, gradient_surgery=method, critic_arch=critic_arch, learning_rate=1e-3)
+def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, policy):
+    """The gradient in ``.grad`` before Adam's step is the method's combination (with the model's c) of per-task
+    gradients from a loop of backward passes, and the actor's parameter change is Adam's first step on it; the
+    critic and the entropy coefficient are surgered too when shared (``arch``), not when per task (their tasks share
+    no parameter). SAC-MT's actor takes the one-backward-pass gradients, a multi-head actor (per-task heads) the
+    generic ones."""
+    model = small_model(
+        policy, gradient_surgery=method, cagrad_c=0.7, critic_arch=arch, ent_coef_arch=arch, learning_rate=1e-3
+    )
     model.learn(800)  # by then the last task's actor gradient conflicts with the others'
     model.records = {}
     model.__class__ = RecordingMTSAC
@@ -225,9 +251,9 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic
     model.actor.optimizer = fresh_adam
     model.train(1, 16)
     assert model.fast_path == (policy == "MlpPolicy")
-    assert ("critic loss" in model.records) == (critic_arch == "shared")
-    for record in model.records.values():
-        grads, weights = record["loop"], record["w"]  # 1/N for the actor, ones for the critic
+    assert set(model.records) == (SURGERED if arch == "shared" else {"actor loss"})
+    for name, record in model.records.items():
+        grads, weights = record["loop"], record["w"]  # 1/N for the actor and a shared beta, ones for the critic
         if method == "pcgrad":
             rng = th.get_rng_state()
             th.set_rng_state(record["rng"])
@@ -235,13 +261,48 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, critic
             th.set_rng_state(rng)
             expected = weights @ np.stack(loop_pcgrad(list(grads), orders))
         else:
-            expected = cagrad_coefficients(grads @ grads.T, weights, 0.5) @ grads / 1.25
+            expected = cagrad_coefficients(grads @ grads.T, weights, 0.7) @ grads / (1 + 0.7**2)
         applied = th.cat([g.flatten() for g in record["grad"]]).double().numpy()
-        np.testing.assert_allclose(applied, expected, rtol=1e-4, atol=1e-7)
-        assert np.linalg.norm(expected - weights @ grads) > 1e-3 * np.linalg.norm(expected)
+        np.testing.assert_allclose(applied, expected, rtol=1e-4, atol=1e-7, err_msg=name)
+        if name != "entropy coefficient loss":  # (its tasks agree here: see the next test)
+            assert np.linalg.norm(expected - weights @ grads) > 1e-3 * np.linalg.norm(expected), name
     record = model.records["actor loss"]
     for before, param, grad in zip(record["before"], record["params"], record["grad"]):
         th.testing.assert_close(param.detach(), before - 1e-3 * grad / (grad.abs() + 1e-8), rtol=1e-5, atol=1e-7)
+
+
+@pytest.mark.parametrize("method", ["pcgrad", "cagrad"])
+def test_a_shared_entropy_coefficient_takes_the_surgered_step_of_conflicting_tasks(method):
+    """Task i's temperature loss has the gradient -mean(log pi_i + H-bar) in log beta: tasks above and below the
+    target entropy conflict. The shared beta then steps along the method's combination (PCGrad: every projected
+    gradient is 0, each one conflicting with a task of the other sign), not along the mean."""
+    model = small_model(gradient_surgery=method, cagrad_c=0.7, critic_arch="shared", ent_coef_arch="shared")
+    model.records = {}
+    model.__class__ = RecordingMTSAC
+    offsets = th.tensor([0.5, 0.2, -0.3, 0.1])[:, None]  # mean(log pi_i + H-bar) per task
+    log_prob = offsets - model.target_entropy + 0.05 * th.randn(4, 16)
+    model._entropy_step(log_prob)
+    grads, weights = model.records["entropy coefficient loss"]["loop"], np.full(4, 0.25)
+    np.testing.assert_allclose(grads[:, 0], -(log_prob + model.target_entropy).mean(1).numpy(), rtol=1e-5)
+    if method == "pcgrad":
+        expected = np.zeros(1)
+    else:
+        expected = cagrad_coefficients(grads @ grads.T, weights, 0.7) @ grads / (1 + 0.7**2)
+    assert abs(expected - weights @ grads).item() > 1e-3
+    applied = model.records["entropy coefficient loss"]["grad"][0].double().numpy()
+    np.testing.assert_allclose(applied, expected, rtol=1e-5, atol=1e-6)
+
+
+def test_a_shared_entropy_coefficient_without_surgery_minimises_the_mean_over_every_sample():
+    """One beta for every task (SB3's SAC on the whole batch): its gradient is -mean(log pi + H-bar) over all N x L
+    samples; the losses still see it once per task."""
+    model = small_model(ent_coef_arch="shared")
+    assert model.log_ent_coef.shape == (1,)
+    log_prob = th.randn(4, 16) - model.target_entropy + th.tensor([1.0, 0.0, -2.0, 0.5])[:, None]
+    before = model.entropy_coefficients.clone()
+    ent_coef, _ = model._entropy_step(log_prob)
+    th.testing.assert_close(model.log_ent_coef.grad, -(log_prob + model.target_entropy).mean().reshape(1))
+    assert th.equal(ent_coef, before) and th.equal(before, before[:1].expand(4))
 
 
 def test_without_surgery_the_update_is_unchanged():
@@ -264,9 +325,43 @@ def test_bad_gradient_surgery_arguments_fail_clearly():
             small_model(gradient_surgery="cagrad", cagrad_c=c)
 
 
-def test_registry_keys_and_published_numbers_with_their_source():
-    assert VARIANTS["mtsac_pcgrad"].defining_hyperparams() == {"policy": "MlpPolicy", "gradient_surgery": "pcgrad"}
-    assert VARIANTS["mtsac_cagrad"].overrides == {"gradient_surgery": "cagrad", "cagrad_c": 0.5}
-    table = table1({"MT10-cpu": {}, "MT20-smoke": {}})
-    assert "| PCGrad | 72.0% | - |" in table and "| CAGrad | 83.0% | - |" in table
-    assert "CAGrad: Liu et al. 2021 (CAGrad), Table 3" in table
+AUTHORS_KEYS = {"mtsac_pcgrad": "pcgrad", "mtsac_cagrad": "cagrad"}
+ACTOR_KEYS = {"mtsac_pcgrad_actor": "pcgrad", "mtsac_cagrad_actor": "cagrad"}
+
+
+def zoo_model(algo: str) -> MTSAC:
+    """The model of a zoo key's toy entry, with small networks and an early start."""
+    entry = dict(zoo_hyperparameters(algo)[ENV])
+    kwargs = {key: value for key, value in entry.items() if key not in ZOO_ONLY}
+    kwargs.update(learning_starts=100, batch_size=16, policy_kwargs={"net_arch": [16, 16]})
+    return MTSAC(env=make_mt_env(ENV, seed=0), seed=0, device="cpu", **kwargs)
+
+
+@pytest.mark.parametrize("algo", [*AUTHORS_KEYS, *ACTOR_KEYS])
+def test_each_zoo_key_surgers_the_losses_of_its_configuration(algo):
+    """The authors' keys send the critic, actor and entropy-coefficient losses through the method (one critic and one
+    beta for every task) and carry the published numbers; the ``_actor`` keys only the actor's (per-task critics and
+    beta_i), and publish none."""
+    model = zoo_model(algo)
+    model.learn(200)
+    model.records = {}
+    model.__class__ = RecordingMTSAC
+    model.train(1, 16)
+    authors = algo in AUTHORS_KEYS
+    assert model.gradient_surgery == {**AUTHORS_KEYS, **ACTOR_KEYS}[algo]
+    assert set(model.records) == (SURGERED if authors else {"actor loss"})
+    assert model.log_ent_coef.shape == ((1,) if authors else (model.n_tasks,))
+    assert bool(VARIANTS[algo].paper) == authors
+
+
+def test_cagrad_c_comes_from_the_registry_entry_of_the_benchmark_and_reaches_the_model(tmp_path, monkeypatch):
+    """Every env entry of the family file takes the c of the one benchmark pattern of CAGRAD_C it matches, and the
+    value the registry gives a benchmark is the c of the model the zoo trains on it."""
+    for env_key, entry in zoo_hyperparameters("mtsac_cagrad").items():
+        matches = [c for pattern, c in CAGRAD_C.items() if fnmatch.fnmatchcase(env_key, pattern)]
+        assert len(matches) == 1 and entry["cagrad_c"] == matches[0], env_key
+    variant = dataclasses.replace(VARIANTS["mtsac_cagrad"], env_overrides={"toy-*": {"cagrad_c": 0.37}})
+    monkeypatch.setitem(VARIANTS, "mtsac_cagrad", variant)
+    run = tiny_train(tmp_path, "mtsac_cagrad", "-params", "learning_starts:100", steps=200)
+    model = MTSAC.load(run / f"{ENV}.zip")
+    assert model.cagrad_c == 0.37 and model.gradient_surgery == "cagrad"

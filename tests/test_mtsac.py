@@ -168,10 +168,18 @@ def test_save_load_round_trip(policy, tmp_path):
 
 
 @pytest.mark.parametrize(
-    "kwargs", [{}, {"gradient_surgery": "pcgrad"}, {"gradient_surgery": "cagrad", "cagrad_c": 0.3}], ids=str
+    "kwargs",
+    [
+        {},
+        {"gradient_surgery": "pcgrad"},
+        {"gradient_surgery": "cagrad", "cagrad_c": 0.3},
+        {"gradient_surgery": "pcgrad", "critic_arch": "shared", "ent_coef_arch": "shared"},
+    ],
+    ids=str,
 )
 def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(kwargs, tmp_path):
-    """Also with gradient surgery: the method and c are restored, and PCGrad's random orders replay."""
+    """Also with gradient surgery: the method, c and the shared critic and beta are restored, and PCGrad's random
+    orders replay."""
     model = small_model(**kwargs)
     model.learn(300)
     model.save(tmp_path / "model")
@@ -219,11 +227,13 @@ def test_rejects_env_without_one_sub_env_per_task():
         model.learn(10)
 
 
-def test_rejects_non_positive_clip_and_bad_critic_arch():
+def test_rejects_non_positive_clip_and_bad_critic_and_ent_coef_arch():
     with pytest.raises(ValueError, match="q_loss_clip"):
         small_model(q_loss_clip=0.0)
     with pytest.raises(ValueError, match="critic_arch"):
         small_model(critic_arch="bogus")
+    with pytest.raises(ValueError, match="ent_coef_arch must be one of"):
+        small_model(ent_coef_arch="per_sample")
 
 
 def test_nan_loss_stops_training_and_names_the_loss():

@@ -115,9 +115,19 @@ class Variant:
 
 
 _CAGRAD_TABLE3 = (
-    "Liu et al. 2021 (CAGrad), Table 3: mean of 10 runs on mtrl's multi-task SAC, 2M env steps per task, on the "
-    "Meta-World of Feb 2021 that their README pins (commit d9a75c4), not Meta-World v3"
+    "Liu et al. 2021 (CAGrad), Table 3: mean of 10 runs on mtrl's multi-task SAC (one critic and one entropy "
+    "coefficient for every task, the method on the critic, actor and entropy-coefficient losses), 2M env steps per "
+    "task, on the Meta-World of Feb 2021 that their README pins (commit d9a75c4), not Meta-World v3"
 )
+# PCGrad and CAGrad as their authors ran them on Meta-World (mtrl's gradient-manipulation agents, the commands of
+# Cranial-XIX/CAGrad mtrl/mtrl_files/run.sh): one critic and one entropy coefficient for every task
+# (should_use_disentangled_alpha=False), the method applied to the critic, actor and entropy-coefficient losses.
+_SURGERY_AUTHORS = {"critic_arch": "shared", "ent_coef_arch": "shared"}
+CAGRAD_C: dict[str, float] = {"MT10*": 0.9, "MT20*": 0.9, "MT50*": 0.5, "DEV6*": 0.9, "toy-*": 0.9}
+"""CAGrad's c per env entry pattern (zoo key ``mtsac_cagrad``): the authors' Meta-World commands (Cranial-XIX/CAGrad,
+``mtrl/mtrl_files/run.sh``, ``cagrad_method=cagrad``) run MT10 with c = 0.9 and MT50 with c = 0.5. MT20, DEV6 and the
+toy have no command of theirs and take MT10's value: MT10 is the nearest task count, and the authors' solver treats
+every task count but 50 as MT10's (its step size)."""
 # MOORE's and PaCo's MT10 success as their papers report it (MT10-rand, Meta-World v2); the "reported" column of
 # Meta-World+'s multi-task table lists the same values beside its own re-runs.
 _REPORTED = (
@@ -238,13 +248,12 @@ for _variant in (
         "mtsac_clip", "SAC-MT-with-clip", "mtsac", overrides={"q_loss_clip": 2000}, paper={"MT10": 85.9, "MT20": 65.5}
     ),
     Variant("mtsacte", "Ours", "mtsacte", paper={"MT10": 89.3, "MT20": 70.1}),
-    # Gradient surgery on the shared actor (and on the critic when it is shared); no MT20 number is published.
-    # c = 0.5: the CAGrad authors' Meta-World agent config (Cranial-XIX/CAGrad, mtrl/mtrl_files/cagrad_state_sac.yaml).
+    # Gradient surgery as its authors ran it on Meta-World (no MT20 number is published), then on the actor alone.
     Variant(
         "mtsac_pcgrad",
         "PCGrad",
         "mtsac",
-        overrides={"gradient_surgery": "pcgrad"},
+        overrides={"gradient_surgery": "pcgrad", **_SURGERY_AUTHORS},
         paper={"MT10": 72.0},
         paper_source=_CAGRAD_TABLE3,
     ),
@@ -252,10 +261,13 @@ for _variant in (
         "mtsac_cagrad",
         "CAGrad",
         "mtsac",
-        overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5},
+        overrides={"gradient_surgery": "cagrad", **_SURGERY_AUTHORS},
+        env_overrides={pattern: {"cagrad_c": c} for pattern, c in CAGRAD_C.items()},
         paper={"MT10": 83.0},
         paper_source=_CAGRAD_TABLE3,
     ),
+    Variant("mtsac_pcgrad_actor", "PCGrad-actor", "mtsac", overrides={"gradient_surgery": "pcgrad"}),
+    Variant("mtsac_cagrad_actor", "CAGrad-actor", "mtsac", overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5}),
     Variant(
         "mtsac_moore",
         "MOORE",
@@ -288,6 +300,7 @@ for _variant in (
 
 
 __all__ = [
+    "CAGRAD_C",
     "FAMILIES",
     "VARIANTS",
     "Family",

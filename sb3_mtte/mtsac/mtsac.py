@@ -10,7 +10,6 @@ import math
 from collections import deque
 from typing import Any, ClassVar, TypeVar
 
-import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
@@ -23,14 +22,14 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
 from sb3_mtte.common.gradient_surgery import check_gradient_surgery
-from sb3_mtte.common.losses import clipped_soft_q_loss, per_task_entropy_loss, sac_task_objective
+from sb3_mtte.common.losses import clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.common.utils import (
-    check_finite,
     check_multitask_env,
     check_one_hot,
     get_task_names,
     polyak_update,
 )
+from sb3_mtte.mtsac.entropy import EntropyCoefMixin, check_ent_coef_arch
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
@@ -46,15 +45,16 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
         raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
 
 
-class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
+class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
     single task (N = 1, e.g. a gymnasium env wrapped in :class:`~sb3_mtte.envs.wrappers.OneHotTaskWrapper`) and
     ``"MlpPolicy"``, the update is SB3's SAC update.
 
-    Every update hands the ``(N,)`` per-task losses and weights to :meth:`_critic_step` and :meth:`_actor_step`, which
-    minimise ``sum_i w_i L_i``; a gradient-level multi-task method (PCGrad, CAGrad, ...) overrides one of them.
+    Every update hands the ``(N,)`` per-task losses and weights of the entropy coefficients, the critic and the actor
+    to :meth:`_entropy_coef_step`, :meth:`_critic_step` and :meth:`_actor_step`, which minimise ``sum_i w_i L_i``; a
+    gradient-level multi-task method (PCGrad, CAGrad, ...) overrides one of them.
 
     :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
         (SAC-soft-modular), ``"IndependentPolicy"`` (SAC-Ind), ``"MOOREPolicy"`` (MOORE) or ``"PaCoPolicy"`` (PaCo),
@@ -68,14 +68,17 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     :param gamma: discount factor.
     :param train_freq: update every ``train_freq`` vector steps (one env step of every task).
     :param gradient_steps: gradient updates per ``train_freq``.
-    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned per-task beta_i) or a fixed float.
+    :param ent_coef: ``"auto"`` / ``"auto_<init>"`` (learned beta_i) or a fixed float.
     :param target_entropy: target entropy H-bar, ``"auto"`` = -dim(A).
     :param target_update_interval: gradient steps between target updates.
     :param critic_arch: ``"per_task"`` (one twin Q per task, the paper's setting) or ``"shared"``.
+    :param ent_coef_arch: ``"per_task"`` (a learned beta_i per task, the paper's setting) or ``"shared"`` (one learned
+        beta for every task, minimising the mean of the tasks' temperature losses as SB3's SAC does).
     :param q_loss_clip: V_clip of Eq. 16; None = plain soft Bellman loss (Eq. 15).
     :param gradient_surgery: None (minimise sum_i w_i L_i), ``"pcgrad"`` (Yu et al. 2020) or ``"cagrad"``
-        (Liu et al. 2021): the update of the shared actor, and of the critic when ``critic_arch="shared"``, follows
-        the method's combination of the per-task gradients.
+        (Liu et al. 2021): the update of the shared actor, of the critic when ``critic_arch="shared"`` and of the
+        entropy coefficient when ``ent_coef_arch="shared"`` follows the method's combination of the per-task
+        gradients.
     :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
     :param action_noise: optional exploration noise.
     :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
@@ -118,6 +121,7 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
         target_entropy: str | float = "auto",
         target_update_interval: int = 1,
         critic_arch: str = "per_task",
+        ent_coef_arch: str = "per_task",
         q_loss_clip: float | None = None,
         gradient_surgery: str | None = None,
         cagrad_c: float = 0.5,
@@ -134,6 +138,7 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     ) -> None:
         check_q_loss_clip(q_loss_clip)
         check_gradient_surgery(gradient_surgery, cagrad_c)
+        check_ent_coef_arch(ent_coef_arch)
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]
@@ -162,6 +167,7 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
         self.n_tasks = check_multitask_env(self.env, min_tasks=self.min_tasks) if self.env is not None else 0
         self.task_names: list[str] = get_task_names(self.env) if self.env is not None else []
         self.critic_arch = critic_arch
+        self.ent_coef_arch = ent_coef_arch
         self.q_loss_clip = q_loss_clip
         self.gradient_surgery = gradient_surgery
         self.cagrad_c = cagrad_c
@@ -208,19 +214,6 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
                 **self.replay_buffer_kwargs,
             )
 
-    def _setup_entropy_coef(self) -> None:
-        if self.target_entropy == "auto":
-            self.target_entropy = -float(np.prod(self.action_space.shape))  # type: ignore[arg-type]
-        self.target_entropy = float(self.target_entropy)
-        if isinstance(self.ent_coef, str) and self.ent_coef.startswith("auto"):
-            init_value = float(self.ent_coef.split("_")[1]) if "_" in self.ent_coef else 1.0
-            if init_value <= 0:
-                raise ValueError("The initial value of ent_coef must be greater than 0.")
-            self.log_ent_coef = th.full((self.n_tasks,), math.log(init_value), device=self.device, requires_grad=True)
-            self.ent_coef_optimizer = th.optim.Adam([self.log_ent_coef], lr=self.lr_schedule(1))
-        else:
-            self.ent_coef_tensor = th.full((self.n_tasks,), float(self.ent_coef), device=self.device)
-
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.critic = self.policy.critic
@@ -248,11 +241,6 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
             check_multitask_env(env, self.n_tasks, min_tasks=self.min_tasks)
         super().set_env(env, force_reset)
         self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
-
-    @property
-    def entropy_coefficients(self) -> th.Tensor:
-        """Current per-task beta_i, shape (N,)."""
-        return self.log_ent_coef.detach().exp() if self.log_ent_coef is not None else self.ent_coef_tensor
 
     # --------------------------------------------------------------------------------------------- training
     def task_weights_for_policy(self) -> th.Tensor:
@@ -292,21 +280,6 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
         self.policy.after_update()
         return stats
 
-    def _entropy_step(self, log_prob: th.Tensor) -> tuple[th.Tensor, dict[str, th.Tensor]]:
-        """Update the learned beta_i (Eq. 3) and return the coefficients the losses use, with their stats.
-
-        :param log_prob: ``(N, L)`` log-probabilities of the reparameterised actions.
-        """
-        if self.ent_coef_optimizer is None or self.log_ent_coef is None:
-            return self.ent_coef_tensor, {"ent_coef": self.ent_coef_tensor}
-        ent_coef = self.log_ent_coef.detach().exp()
-        ent_coef_loss = per_task_entropy_loss(self.log_ent_coef, log_prob.detach(), self.target_entropy).sum()
-        check_finite("entropy coefficient loss", ent_coef_loss)
-        self.ent_coef_optimizer.zero_grad()
-        ent_coef_loss.backward()
-        self.ent_coef_optimizer.step()
-        return ent_coef, {"ent_coef_loss": ent_coef_loss.detach(), "ent_coef": ent_coef}
-
     def _critic_losses(self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor) -> th.Tensor:
         """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed."""
         with th.no_grad():
@@ -324,9 +297,8 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
         :param task_weights: ``(N,)`` weights of the tasks (ones).
         :return: the loss that was minimised.
         """
-        if self.gradient_surgery is not None and self.critic_arch == "shared":
-            return self._surgery_step(self.critic.optimizer, "critic loss", task_losses, task_weights)
-        return self._weighted_step(self.critic.optimizer, "critic loss", task_losses, task_weights)
+        shared = self.critic_arch == "shared"
+        return self._task_step(self.critic.optimizer, "critic loss", task_losses, task_weights, shared)
 
     def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
         """Apply one actor update from the per-task losses -J_SAC,i; the hook a gradient-level method (PCGrad,
@@ -336,21 +308,7 @@ class MTSAC(GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
         :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`task_weights_for_policy`).
         :return: the loss that was minimised.
         """
-        if self.gradient_surgery is not None:
-            return self._surgery_step(self.actor.optimizer, "actor loss", task_losses, task_weights, actor=True)
-        return self._weighted_step(self.actor.optimizer, "actor loss", task_losses, task_weights)
-
-    @staticmethod
-    def _weighted_step(
-        optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
-    ) -> th.Tensor:
-        """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training."""
-        loss = (task_weights * task_losses).sum()
-        check_finite(name, loss)
-        optimizer.zero_grad()
-        loss.backward()
-        optimizer.step()
-        return loss
+        return self._task_step(self.actor.optimizer, "actor loss", task_losses, task_weights, True, actor=True)
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:

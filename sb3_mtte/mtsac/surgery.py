@@ -16,7 +16,8 @@ from sb3_mtte.common.utils import check_finite
 
 
 class GradientSurgeryMixin:
-    """Steps an optimizer along the PCGrad / CAGrad combination of the per-task gradients of its parameters.
+    """Steps an optimizer along the PCGrad / CAGrad combination of the per-task gradients of its parameters, for
+    the parameters the tasks share (:meth:`_task_step`).
 
     The per-task gradients of an actor whose network all tasks share and that maps rows independently
     (:attr:`~sb3_mtte.common.policies.MultiTaskActor.shared_rows_network`, e.g. SAC-MT's) cost about one backward
@@ -40,6 +41,34 @@ class GradientSurgeryMixin:
         if [id(p) for p in network.parameters()] != [id(p) for p in params]:
             raise RuntimeError("The actor optimizer's parameters must be those of its shared network, in order.")
         return per_task_gradients_of_rows(network, *kept, task_losses)
+
+    def _task_step(
+        self,
+        optimizer: th.optim.Optimizer,
+        name: str,
+        task_losses: th.Tensor,
+        task_weights: th.Tensor,
+        shared: bool,
+        actor: bool = False,
+    ) -> th.Tensor:
+        """One step of ``optimizer`` on the per-task losses: along the surgered direction when a method is set and
+        the tasks share the parameters, else on ``sum_i w_i L_i`` (disjoint per-task parameters have nothing to
+        combine). Returns ``sum_i w_i L_i``."""
+        if self.gradient_surgery is not None and shared:
+            return self._surgery_step(optimizer, name, task_losses, task_weights, actor)
+        return self._weighted_step(optimizer, name, task_losses, task_weights)
+
+    @staticmethod
+    def _weighted_step(
+        optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
+    ) -> th.Tensor:
+        """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training."""
+        loss = (task_weights * task_losses).sum()
+        check_finite(name, loss)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        return loss
 
     def _surgery_step(
         self,
