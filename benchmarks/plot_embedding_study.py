@@ -21,7 +21,9 @@ SHOWN = (
     "init_0.1_c_vae_0",
     "init_0.1_c_vae_1e-4",
     "init_0.01_c_vae_1e-4",
+    "mean_gain_50",
 )
+LABELS = {"init_0.01_c_vae_1e-4": " (previous defaults)", "mean_gain_50": " (defaults now: std 0.01, c_vae 1e-4)"}
 
 
 def main() -> None:
@@ -37,14 +39,14 @@ def main() -> None:
         runs = [r for r in data["runs"] if r["setting"] == setting and r["seed"] == 0]
         run = max(runs, key=lambda r: r["per_task_steps"])  # the longest run of the setting
         steps = [p[0] / n_tasks / 1000 for p in run["probe"]]
-        label = setting.replace("_", " ") + (" (defaults now)" if setting == "init_0.01_c_vae_1e-4" else "")
+        label = setting.replace("_", " ") + LABELS.get(setting, "")
         ax_probe.plot(steps, [p[1] for p in run["probe"]], color=colors[index], label=label)
         ax_std.plot(steps, [p[3] for p in run["probe"]], color=colors[index], label=label)
     ax_probe.axhline(1 / n_tasks, color="grey", linestyle=":", label="chance")
     ax_probe.set(xlabel="env steps per task (thousands)", ylabel="probe of the task from sampled z", ylim=(0, 1.02))
     ax_std.set(xlabel="env steps per task (thousands)", ylabel="E_phi's standard deviation (mean)", yscale="log")
     ax_probe.legend(fontsize=7, loc="center right")
-    fig.suptitle("DEV6, seed 0: does z carry the task? (one run per setting; settings relative to the former defaults)")
+    fig.suptitle("DEV6, seed 0: does z carry the task? (one run per setting)")
     fig.tight_layout()
     args.out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(args.out, dpi=110)
