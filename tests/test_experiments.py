@@ -68,9 +68,9 @@ def test_a_registered_variant_trains_evaluates_and_plots(tmp_path):
         assert info["label"] == "SAC-MT-probe" and info["hyperparams"]["policy"] == "MultiHeadPolicy"
         record = evaluate.main([str(run / f"{ENV}.zip"), "--episodes", "1"])
         assert record["label"] == "SAC-MT-probe"
-        written = plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures")])
+        written = plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10"])
         assert tmp_path / "figures" / f"success_{ENV}.png" in written
-        assert "| SAC-MT-probe |" in (tmp_path / "figures" / "table1.md").read_text()
+        assert "| SAC-MT-probe |" in (tmp_path / "figures" / f"table1_{ENV}.md").read_text()
     finally:
         unregister_variant("mtsac_probe")
     assert "mtsac_probe" not in VARIANTS
