@@ -173,7 +173,12 @@ def test_record_of_a_finished_run(tmp_path):
     (path,) = records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     record = json.loads(path.read_text())
     info = read_run_info(run)
-    assert path.name == f"{ENV}_mtsacte_seed{info['seed']}.json"
+    assert path == tmp_path / "records" / ENV / f"mtsacte_seed{info['seed']}.json"
+    sample = json.loads(next((ROOT / "tests" / "data" / "records").rglob("mtsacte_seed0.json")).read_text())
+    assert set(record) == set(sample) and set(record["final"]) == set(sample["final"])  # samples keep the format
+    assert set(record["representation"]) == set(sample["representation"])
+    assert record["budget"] == {"n_timesteps": 200, "timesteps": 200, "finished": True}
+    assert record["started"] == info["started"] and record["algo"] == "mtsacte" and record["n_tasks"] == 4
     assert record["final"]["per_task"] == final["per_task"] and record["final"]["episodes_per_task"] == 2
     assert record["hyperparams"] == info["hyperparams"] and record["git"] == info["git"]
     evaluations = np.load(run / "evaluations.npz")
@@ -181,4 +186,4 @@ def test_record_of_a_finished_run(tmp_path):
     np.testing.assert_allclose(record["curve"]["success_rate"], evaluations["success_rate"], atol=1e-6)
     nt_lines = (run / "negative_transfer.jsonl").read_text().splitlines()
     assert len(record["representation"]["task_probe_accuracy"]) == len(nt_lines)
-    assert records.read_records(tmp_path / "records") == [record]
+    assert records.read_records(tmp_path / "records") == [(path, record)]

@@ -16,6 +16,7 @@ from matplotlib.colors import to_hex
 from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments import figures, summary_figures
+from sb3_mtte.experiments import records as records_cli
 from sb3_mtte.experiments import runs as plot_runs
 from sb3_mtte.experiments.run_info import (
     append_resume,
@@ -279,6 +280,50 @@ def test_results_summary_per_run(zoo_runs, tmp_path):
         {"mean": 0.75, "per_task": dict.fromkeys(TASKS, 0.75)},
         {"mean": 0.25, "per_task": dict.fromkeys(TASKS, 0.25)},
     ]
+
+
+def test_records_redraw_the_table_and_success_curves_of_their_run_folders(tmp_path, monkeypatch):
+    """Records of run folders give the same Table 1 and success figures as the folders, and a record beside its
+    run folder is not counted twice."""
+    runs = tmp_path / "runs"
+    names = [f"task{i}-v3" for i in range(10)]
+    for algo, label, seed, final in (
+        ("mtsacte", "Ours", 0, 0.8),
+        ("mtsacte", "Ours", 1, 0.6),
+        ("mtsac_mt", "SAC-MT", 0, 0.5),
+    ):
+        run = make_synthetic_run(runs, algo, label, seed, final, nt=algo == "mtsacte")
+        rates = np.round(np.linspace(0, final, 10), 2).tolist()
+        (run / "success.json").write_text(json.dumps({"mean": final, "per_task": dict(zip(names, rates))}))
+    monkeypatch.chdir(tmp_path)
+    paths = records_cli.main([str(runs)])  # default --out: docs/records/<env id>/<algo>_seed<k>.json
+    assert sorted(str(p) for p in paths) == [
+        f"docs/records/MT10/{a}_seed{k}.json" for a, k in (("mtsac_mt", 0), ("mtsacte", 0), ("mtsacte", 1))
+    ]
+    assert len(records_cli.load_runs([runs, tmp_path / "docs"])) == 3
+    figs = {}
+    monkeypatch.setattr(
+        summary_figures, "save_figure", lambda fig, path, opts, written: figs.setdefault(str(path), fig)
+    )
+    for source in (runs, tmp_path / "docs"):
+        plot.main([str(source), "--out", str(tmp_path / source.name), "--reps", "20"])
+    assert (tmp_path / "runs" / "table1_MT10.md").read_text() == (tmp_path / "docs" / "table1_MT10.md").read_text()
+    from_runs, from_records = (
+        figs[str(tmp_path / "runs" / "success_MT10.png")],
+        figs[str(tmp_path / "docs" / "success_MT10.png")],
+    )
+    for line_a, line_b in zip(from_runs.axes[0].get_lines(), from_records.axes[0].get_lines(), strict=True):
+        assert line_a.get_label() == line_b.get_label()
+        np.testing.assert_allclose(line_a.get_xydata(), line_b.get_xydata(), atol=1e-4)
+
+
+def test_two_runs_sharing_a_record_file_are_refused(tmp_path):
+    for folder in ("a", "b"):
+        run = make_synthetic_run(tmp_path / "runs" / folder, "mtsac_mt", "SAC-MT", 0, 0.5, nt=False)
+        (run / "success.json").write_text(json.dumps({"mean": 0.5}))
+    with pytest.raises(SystemExit, match=r"a/mtsac_mt/MT10_1 and .*b/mtsac_mt/MT10_1 would both be recorded"):
+        records_cli.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    assert not (tmp_path / "records").exists()
 
 
 def test_plot_without_runs(tmp_path):
