@@ -9,7 +9,8 @@ repository. Its fields (format :data:`RECORD_VERSION`):
 - ``budget``: ``n_timesteps`` (planned env steps, all tasks), ``timesteps`` (reached) and ``finished``;
 - ``hyperparams`` (every hyperparameter as loaded), ``versions`` (packages), ``git`` (commit, branch, dirty flag),
   ``resumes`` (how many times the run was resumed);
-- ``curve``: ``env_steps`` (all tasks) and ``success_rate`` ``(evaluations, tasks)`` of every periodic evaluation;
+- ``curve``: ``env_steps`` (all tasks) and ``success_rate`` ``(evaluations, tasks)`` of every periodic evaluation,
+  and its ``episodes_per_task``;
 - ``final``: the final evaluation (``success.json``): ``mean``, ``per_task``, ``episodes_per_task``, ``env_steps``,
   ``deterministic``;
 - ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean and
@@ -46,6 +47,7 @@ def _curve(run: Run) -> dict[str, Any] | None:
     return {
         "env_steps": [int(t) for t in run.evaluations["timesteps"]],
         "success_rate": np.round(np.asarray(run.evaluations["success_rate"], dtype=float), 6).tolist(),
+        "episodes_per_task": run.info.get("hyperparams", {}).get("eval_episodes"),
     }
 
 
