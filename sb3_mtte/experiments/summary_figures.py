@@ -68,7 +68,9 @@ def curve_bands(groups: Mapping[str, Sequence[Run]], opts: PlotOptions) -> dict[
     return bands
 
 
-def _band(ax: Axes, x: np.ndarray, mean: np.ndarray, low: np.ndarray, high: np.ndarray, label: str, style) -> None:
+def _band(
+    ax: Axes, x: np.ndarray, mean: np.ndarray, low: np.ndarray, high: np.ndarray, label: str, style: tuple[str, str]
+) -> None:
     color, linestyle = style
     ax.plot(x, 100 * mean, label=label, color=color, linestyle=linestyle)
     if np.any(high > low):
