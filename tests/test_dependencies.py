@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import configparser
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
+from pathlib import Path
 
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
@@ -28,8 +30,17 @@ COMMAND_MODULES = [
 ]
 
 
+def declared_requirements() -> list[str]:
+    """``install_requires`` of this tree's setup.cfg (an editable install's metadata may predate it)."""
+    config = configparser.ConfigParser()
+    config.read(Path(__file__).resolve().parent.parent / "setup.cfg")
+    lines = (line.split("#")[0].strip() for line in config["options"]["install_requires"].splitlines())
+    return [line for line in lines if line]
+
+
 def requirement_closure(name: str) -> set[str]:
-    """Canonical names of ``name`` and everything its base (no-extra) requirements pull in, recursively."""
+    """Canonical names of ``name`` and everything its base (no-extra) requirements pull in, recursively (for
+    sb3-mtte, from this tree's setup.cfg)."""
     seen: set[str] = set()
     stack = [name]
     while stack:
@@ -38,7 +49,7 @@ def requirement_closure(name: str) -> set[str]:
             continue
         seen.add(current)
         try:
-            requirements = distribution(current).requires or []
+            requirements = declared_requirements() if current == "sb3-mtte" else distribution(current).requires or []
         except PackageNotFoundError:
             continue
         for line in requirements:

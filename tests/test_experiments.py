@@ -68,9 +68,9 @@ def test_a_registered_variant_trains_evaluates_and_plots(tmp_path):
         assert info["label"] == "SAC-MT-probe" and info["hyperparams"]["policy"] == "MultiHeadPolicy"
         record = evaluate.main([str(run / f"{ENV}.zip"), "--episodes", "1"])
         assert record["label"] == "SAC-MT-probe"
-        written = plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures")])
+        written = plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10"])
         assert tmp_path / "figures" / f"success_{ENV}.png" in written
-        assert "| SAC-MT-probe |" in (tmp_path / "figures" / "table1.md").read_text()
+        assert "| SAC-MT-probe |" in (tmp_path / "figures" / f"table1_{ENV}.md").read_text()
     finally:
         unregister_variant("mtsac_probe")
     assert "mtsac_probe" not in VARIANTS
@@ -173,7 +173,15 @@ def test_record_of_a_finished_run(tmp_path):
     (path,) = records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     record = json.loads(path.read_text())
     info = read_run_info(run)
-    assert path.name == f"{ENV}_mtsacte_seed{info['seed']}.json"
+    assert path == tmp_path / "records" / ENV / f"mtsacte_seed{info['seed']}.json"
+    sample = json.loads(next((ROOT / "tests" / "data" / "records").rglob("mtsacte_seed0.json")).read_text())
+    assert set(record) == set(sample) and set(record["final"]) == set(sample["final"])  # samples keep the format
+    assert set(record["representation"]) == set(sample["representation"]) and set(record["curve"]) == set(
+        sample["curve"]
+    )
+    assert record["curve"]["episodes_per_task"] == info["hyperparams"]["eval_episodes"]
+    assert record["budget"] == {"n_timesteps": 200, "timesteps": 200, "finished": True}
+    assert record["started"] == info["started"] and record["algo"] == "mtsacte" and record["n_tasks"] == 4
     assert record["final"]["per_task"] == final["per_task"] and record["final"]["episodes_per_task"] == 2
     assert record["hyperparams"] == info["hyperparams"] and record["git"] == info["git"]
     evaluations = np.load(run / "evaluations.npz")
@@ -181,4 +189,4 @@ def test_record_of_a_finished_run(tmp_path):
     np.testing.assert_allclose(record["curve"]["success_rate"], evaluations["success_rate"], atol=1e-6)
     nt_lines = (run / "negative_transfer.jsonl").read_text().splitlines()
     assert len(record["representation"]["task_probe_accuracy"]) == len(nt_lines)
-    assert records.read_records(tmp_path / "records") == [record]
+    assert records.read_records(tmp_path / "records") == [(path, record)]

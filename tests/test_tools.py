@@ -15,7 +15,8 @@ from matplotlib.colors import to_hex
 
 from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments import figures
+from sb3_mtte.experiments import figures, summary_figures
+from sb3_mtte.experiments import records as records_cli
 from sb3_mtte.experiments import runs as plot_runs
 from sb3_mtte.experiments.run_info import (
     append_resume,
@@ -155,14 +156,16 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
         make_synthetic_run(runs, "mtsacte", "Ours", seed, final, nt=True)
         make_synthetic_run(runs, "mtsac_mt", "SAC-MT", seed, final - 0.2, nt=False, tb=seed == 1)
     make_synthetic_run(runs, "mtsacte_novae", "Ours-VAE", 0, 0.5, nt=True)
-    (runs / "mtsacte" / "MT10_1" / "success.json").write_text(json.dumps({"mean": 0.85}))
+    names = [f"task{i}-v3" for i in range(10)]
+    final_ours = {"mean": 0.85, "per_task": dict.fromkeys(names, 0.85)}
+    (runs / "mtsacte" / "MT10_1" / "success.json").write_text(json.dumps(final_ours))
     out = tmp_path / "docs"
-    written = plot.main([str(runs), "--out", str(out), "--tasks", "task0", "task3", "--matrix-times", "1e4", "9e4"])
-    names = sorted(p.name for p in written)
+    argv = [str(runs), "--out", str(out), "--tasks", "task0", "task3", "--matrix-times", "1e4", "9e4", "--reps", "50"]
+    written = plot.main(argv)
     expected = {
         "success_MT10.png",
-        "ablation_MT10.png",
         "per_task_MT10.png",
+        "profile_MT10.png",
         "bellman_MT10_Ours.png",
         "bellman_MT10_SAC-MT.png",
         "bellman_MT10_Ours-VAE.png",
@@ -171,20 +174,21 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
         "nt_MT10_Ours.png",
         "nt_matrix_MT10_Ours.png",
         "train_frequency_MT10_Ours-VAE.png",
-        "table1.md",
+        "nt_MT10_Ours-VAE.png",
+        "nt_matrix_MT10_Ours-VAE.png",
+        "table1_MT10.md",
+        "results_MT10.json",
     }
-    assert expected <= set(names), expected - set(names)
+    assert {p.name for p in written} == expected
     for path in written:
         assert path.stat().st_size > (1000 if path.suffix == ".png" else 100), path
-    table = (out / "table1.md").read_text()
+    table = (out / "table1_MT10.md").read_text()
     assert table in capsys.readouterr().out
-    ours_table = table.split("Published success")[0]
-    rows = {line.split("|")[1].strip(): line for line in ours_table.splitlines() if line.startswith("| ")}
-    ours = np.mean([0.85, final_eval(runs / "mtsacte" / "MT10_2")])
-    assert f"{100 * ours:.1f} ±" in rows["Ours"] and "(n=2)" in rows["Ours"]
-    assert "(n=2)" in rows["SAC-MT"] and "(n=1)" in rows["Ours-VAE"] and "±" not in rows["Ours-VAE"]
-    assert "89.3%" in table  # the paper's row for reference
-    assert list(rows).index("SAC-MT") < list(rows).index("Ours") < list(rows).index("Ours-VAE")
+    rows = {line.split("|")[1].strip(): line.split("|")[2:-1] for line in table.splitlines() if line.startswith("| ")}
+    assert list(rows)[1:] == ["SAC-MT", "Ours", "Ours-VAE"]
+    ours = np.mean([0.85, final_eval(runs / "mtsacte" / "MT10_2")])  # success.json, else the last evaluation
+    assert rows["Ours"][0].strip() == "2" and rows["Ours"][1].strip().startswith(f"{100 * ours:.1f} [")
+    assert rows["Ours-VAE"][0].strip() == "1" and rows["Ours"][-1].strip() == "89.3"  # the paper's value beside
 
 
 def test_every_algorithm_keeps_one_distinct_style_in_every_figure(tmp_path, monkeypatch):
@@ -194,11 +198,16 @@ def test_every_algorithm_keeps_one_distinct_style_in_every_figure(tmp_path, monk
         for i, label in enumerate(labels)
     }
     figs = {}
-    monkeypatch.setattr(figures, "_save", lambda fig, path, opts, written: figs.__setitem__(path.name, fig))
-    opts = figures.PlotOptions(out=tmp_path)
-    figures.plot_success("MT10", groups, opts, [])
-    figures.plot_per_task("MT10", {label: groups[label] for label in labels[5:]}, opts, [])
-    assert set(figs) == {"success_MT10.png", "ablation_MT10.png", "per_task_MT10.png"}
+    monkeypatch.setattr(
+        summary_figures, "save_figure", lambda fig, path, opts, written: figs.__setitem__(path.name, fig)
+    )
+    opts = figures.PlotOptions(out=tmp_path, reps=10)
+    summary_figures.plot_success("MT10", summary_figures.curve_bands(groups, opts), opts, [])
+    some = {label: groups[label] for label in labels[5:]}
+    summary_figures.plot_per_task("MT10", summary_figures.curve_bands(some, opts), TASKS, opts, [])
+    scores = {label: np.full((1, 10), 0.5) for label in labels}
+    summary_figures.plot_profile("MT10", scores, opts, [])
+    assert set(figs) == {"success_MT10.png", "per_task_MT10.png", "profile_MT10.png"}
     seen = {}
     for name, fig in figs.items():
         drawn = {}
@@ -238,9 +247,9 @@ def test_mean_std_over_seeds_interpolates():
 
 
 def test_plot_real_tiny_runs(zoo_runs, tmp_path):
-    written = plot.main([str(zoo_runs), "--out", str(tmp_path)])
+    written = plot.main([str(zoo_runs), "--out", str(tmp_path), "--reps", "10"])
     names = {p.name for p in written}
-    assert {f"success_{ENV}.png", f"per_task_{ENV}.png", f"nt_matrix_{ENV}_Ours.png", "table1.md"} <= names
+    assert {f"success_{ENV}.png", f"per_task_{ENV}.png", f"nt_matrix_{ENV}_Ours.png", f"table1_{ENV}.md"} <= names
     assert {f"bellman_{ENV}_SAC-MT.png", f"train_frequency_{ENV}_Ours.png", f"nt_{ENV}_Ours.png"} <= names
 
 
@@ -248,7 +257,7 @@ def test_plot_writes_beside_the_runs_by_default(zoo_runs, tmp_path, monkeypatch)
     runs = tmp_path / "runs"
     shutil.copytree(zoo_runs, runs)
     monkeypatch.chdir(tmp_path)
-    written = plot.main([str(runs)])
+    written = plot.main([str(runs), "--reps", "10"])
     assert written and all(path.parent == runs for path in written)
     assert not (tmp_path / "docs").exists()
 
@@ -259,7 +268,9 @@ def test_results_summary_per_run(zoo_runs, tmp_path):
     for algo, mean in (("mtsacte", 0.25), ("mtsac_mt", 0.75)):
         final = {"mean": mean, "per_task": dict.fromkeys(TASKS, mean), "timesteps": 123, "episodes_per_task": 10}
         (runs / algo / f"{ENV}_1" / "success.json").write_text(json.dumps(final))
-    plot.main([str(runs), "--out", str(tmp_path / "figures"), "--results-dir", str(tmp_path / "results")])
+    plot.main(
+        [str(runs), "--out", str(tmp_path / "figures"), "--results-dir", str(tmp_path / "results"), "--reps", "9"]
+    )
     records = json.loads((tmp_path / "results" / f"{ENV}.json").read_text())
     assert [(r["algo"], r["label"], r["benchmark"], r["seed"], r["env_steps"]) for r in records] == [
         ("mtsac_mt", "SAC-MT", ENV, 1, 123),
@@ -269,6 +280,50 @@ def test_results_summary_per_run(zoo_runs, tmp_path):
         {"mean": 0.75, "per_task": dict.fromkeys(TASKS, 0.75)},
         {"mean": 0.25, "per_task": dict.fromkeys(TASKS, 0.25)},
     ]
+
+
+def test_records_redraw_the_table_and_success_curves_of_their_run_folders(tmp_path, monkeypatch):
+    """Records of run folders give the same Table 1 and success figures as the folders, and a record beside its
+    run folder is not counted twice."""
+    runs = tmp_path / "runs"
+    names = [f"task{i}-v3" for i in range(10)]
+    for algo, label, seed, final in (
+        ("mtsacte", "Ours", 0, 0.8),
+        ("mtsacte", "Ours", 1, 0.6),
+        ("mtsac_mt", "SAC-MT", 0, 0.5),
+    ):
+        run = make_synthetic_run(runs, algo, label, seed, final, nt=algo == "mtsacte")
+        rates = np.round(np.linspace(0, final, 10), 2).tolist()
+        (run / "success.json").write_text(json.dumps({"mean": final, "per_task": dict(zip(names, rates))}))
+    monkeypatch.chdir(tmp_path)
+    paths = records_cli.main([str(runs)])  # default --out: docs/records/<env id>/<algo>_seed<k>.json
+    assert sorted(str(p) for p in paths) == [
+        f"docs/records/MT10/{a}_seed{k}.json" for a, k in (("mtsac_mt", 0), ("mtsacte", 0), ("mtsacte", 1))
+    ]
+    assert len(records_cli.load_runs([runs, tmp_path / "docs"])) == 3
+    figs = {}
+    monkeypatch.setattr(
+        summary_figures, "save_figure", lambda fig, path, opts, written: figs.setdefault(str(path), fig)
+    )
+    for source in (runs, tmp_path / "docs"):
+        plot.main([str(source), "--out", str(tmp_path / source.name), "--reps", "20"])
+    assert (tmp_path / "runs" / "table1_MT10.md").read_text() == (tmp_path / "docs" / "table1_MT10.md").read_text()
+    from_runs, from_records = (
+        figs[str(tmp_path / "runs" / "success_MT10.png")],
+        figs[str(tmp_path / "docs" / "success_MT10.png")],
+    )
+    for line_a, line_b in zip(from_runs.axes[0].get_lines(), from_records.axes[0].get_lines(), strict=True):
+        assert line_a.get_label() == line_b.get_label()
+        np.testing.assert_allclose(line_a.get_xydata(), line_b.get_xydata(), atol=1e-4)
+
+
+def test_two_runs_sharing_a_record_file_are_refused(tmp_path):
+    for folder in ("a", "b"):
+        run = make_synthetic_run(tmp_path / "runs" / folder, "mtsac_mt", "SAC-MT", 0, 0.5, nt=False)
+        (run / "success.json").write_text(json.dumps({"mean": 0.5}))
+    with pytest.raises(SystemExit, match=r"a/mtsac_mt/MT10_1 and .*b/mtsac_mt/MT10_1 would both be recorded"):
+        records_cli.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    assert not (tmp_path / "records").exists()
 
 
 def test_plot_without_runs(tmp_path):
@@ -315,4 +370,5 @@ def test_sweep_tiny_grid_on_local_ray(tmp_path):
         assert len(read_run_info(out / "mtsacte" / f"{ENV}_1")["resumes"]) == 0
     finally:
         ray.shutdown()
-    assert {"success_toy-conflict.png", "table1.md"} <= {p.name for p in plot.main([str(out), "--out", str(tmp_path)])}
+    written = plot.main([str(out), "--out", str(tmp_path), "--reps", "10"])
+    assert {"success_toy-conflict.png", "table1_toy-conflict.md"} <= {p.name for p in written}

@@ -8,8 +8,8 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
     sb3-mtte enjoy --algo mtsacte --env MT10 -f logs --no-render -n 2000
     sb3-mtte record_video --algo mtsacte --env MT10 -f logs [-o VIDEO_DIR] [--episodes 1] [--tile]
     sb3-mtte evaluate logs/mtsacte/MT10_1/MT10.zip --episodes 50
-    sb3-mtte record logs --out records/                    # one small JSON per finished run
-    sb3-mtte plot logs --out figures/
+    sb3-mtte record logs                                   # docs/records/<env id>/<algo>_seed<k>.json
+    sb3-mtte plot docs/records --out docs/figures          # from records (and/or run folders)
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
 ``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``

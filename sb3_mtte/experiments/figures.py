@@ -1,7 +1,7 @@
-"""The paper's figures from runs grouped by benchmark and algorithm (``<b>`` = benchmark, ``<a>`` = algorithm label).
+"""Figures of the paper that need a run folder's logs (``<b>`` = benchmark, ``<a>`` = algorithm label), and the
+helpers every figure shares. The success figures, drawn from records as well, are in
+:mod:`sb3_mtte.experiments.summary_figures`.
 
-- ``success_<b>.png`` (Fig. 4; ``ablation_<b>.png``: Fig. 7): mean success over tasks, mean +- std over seeds;
-- ``per_task_<b>.png`` (Figs. 8-9): success of every task, mean +- std over seeds;
 - ``bellman_<b>_<a>.png`` (Fig. 3): per task, soft Bellman error (critic loss) and success;
 - ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm;
 - ``train_frequency_<b>_<a>.png`` (Fig. 5): per task, the fraction of recomputations in which it was in C_s
@@ -38,7 +38,8 @@ from sb3_mtte.experiments.runs import (
     task_scalar,
     train_frequency,
 )
-from sb3_mtte.experiments.variants import ablation_labels, variant_labels
+from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
+from sb3_mtte.experiments.variants import variant_labels
 
 Groups = dict[str, list[Run]]
 """Algorithm label -> runs (its seeds), for one benchmark."""
@@ -61,6 +62,8 @@ class PlotOptions:
     :param freq_window_episodes: window of the train frequency, in episodes.
     :param dpi: resolution of the PNG files.
     :param results_dir: folder of the per-benchmark results JSON (None: ``out``).
+    :param reps: bootstrap resamples of the confidence intervals.
+    :param seed: seed of the bootstrap resamples.
     """
 
     out: Path
@@ -71,6 +74,8 @@ class PlotOptions:
     freq_window_episodes: int = 20
     dpi: int = 120
     results_dir: Path | None = None
+    reps: int = DEFAULT_REPS
+    seed: int = DEFAULT_SEED
 
     def xscale(self, run: Run) -> float:
         return 1.0 / run.n_tasks if self.x_per_task else 1.0
@@ -85,11 +90,11 @@ def safe_name(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
-def _figure(width: float, height: float) -> Figure:
+def new_figure(width: float, height: float) -> Figure:
     return Figure(figsize=(width, height), layout="constrained")
 
 
-def _title(fig: Figure, text: str, fontsize: float = 10) -> None:
+def wrapped_title(fig: Figure, text: str, fontsize: float = 10) -> None:
     """A figure title wrapped to the figure's width."""
     chars = max(40, int(fig.get_figwidth() * 120 / fontsize))
     fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
@@ -103,7 +108,7 @@ def _steps_label(x: float, _position: int | None = None) -> str:
     return f"{x:g}"
 
 
-def _save(fig: Figure, path: Path, opts: PlotOptions, written: list[Path]) -> None:
+def save_figure(fig: Figure, path: Path, opts: PlotOptions, written: list[Path]) -> None:
     for ax in fig.axes:
         if not ax.images and getattr(ax, "_colorbar", None) is None:  # time axes, not the heatmaps or colorbars
             ax.xaxis.set_major_locator(MaxNLocator(5))
@@ -124,13 +129,6 @@ def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
     }
 
 
-def _band(ax: Axes, x: np.ndarray, mean: np.ndarray, std: np.ndarray, label: str, style: tuple[str, str]) -> None:
-    color, linestyle = style
-    ax.plot(x, mean, label=label, color=color, linestyle=linestyle)
-    if np.any(std > 0):
-        ax.fill_between(x, mean - std, mean + std, alpha=0.2, color=color)
-
-
 def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[int]:
     """Indices of the tasks named in ``wanted`` (full or short names, e.g. ``pick-place``); all when None."""
     if not wanted:
@@ -143,11 +141,11 @@ def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[
     return chosen or list(range(len(names)))
 
 
-def _panels(n: int, max_cols: int, width: float, height: float) -> tuple[Figure, list[Axes]]:
+def panel_grid(n: int, max_cols: int, width: float, height: float) -> tuple[Figure, list[Axes]]:
     """A figure with ``n`` panels in a grid of at most ``max_cols`` columns (unused cells hidden)."""
     cols = min(n, max_cols)
     rows = math.ceil(n / cols)
-    fig = _figure(width * cols, height * rows + 0.6)
+    fig = new_figure(width * cols, height * rows + 0.6)
     grid = fig.subplots(rows, cols, squeeze=False)
     axes = [grid[j // cols][j % cols] for j in range(rows * cols)]
     for ax in axes[n:]:
@@ -169,68 +167,6 @@ def _mean_series(
         return None
     x, mean, _ = mean_std(curves)
     return x, mean
-
-
-def _success_band(
-    ax: Axes,
-    runs: Sequence[Run],
-    label: str,
-    style: tuple[str, str],
-    opts: PlotOptions,
-    task: int | None = None,
-) -> int:
-    """Success (%) of ``runs``, mean +- std over seeds, drawn in ``style``; returns the number of runs drawn."""
-    curves = []
-    for run in runs:
-        curve = success_curve(run, task) if task is None or task < run.n_tasks else None
-        if curve is not None:
-            curves.append((curve[0] * opts.xscale(run), smooth(curve[1], opts.smooth)))
-    if curves:
-        x, mean, std = mean_std(curves)
-        _band(ax, x, 100 * mean, 100 * std, label=label, style=style)
-    return len(curves)
-
-
-def plot_success(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
-    """Fig. 4 (and Fig. 7 when ablation runs are present): mean success, mean +- std over seeds."""
-    ablations = ablation_labels()
-    sets = [("success", [label for label in label_order(list(groups)) if label not in ablations[1:]])]
-    if any(label in groups for label in ablations[1:]):
-        sets.append(("ablation", [label for label in ablations if label in groups]))
-    styles = algorithm_styles(list(groups))
-    for name, labels in sets:
-        fig = _figure(7, 4.5)
-        ax = fig.subplots()
-        for label in labels:
-            n_runs = len([run for run in groups[label] if success_curve(run) is not None])
-            _success_band(ax, groups[label], f"{label} (n={n_runs})", styles[label], opts)
-        ax.set_xlabel(opts.xlabel)
-        ax.set_ylabel("success rate (%)")
-        ax.set_ylim(-2, 102)
-        ax.set_title(f"{bench}: mean success over tasks" + (" (ablations)" if name == "ablation" else ""))
-        ax.grid(alpha=0.3)
-        if ax.lines:
-            ax.legend(fontsize=8)
-        _save(fig, opts.out / f"{name}_{safe_name(bench)}.png", opts, written)
-
-
-def plot_per_task(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
-    """Figs. 8-9: success of every task, one panel per task, mean +- std over seeds per algorithm."""
-    names = next(iter(groups.values()))[0].task_names
-    fig, axes = _panels(len(names), 5, 3.2, 2.6)
-    styles = algorithm_styles(list(groups))
-    for i, (ax, name) in enumerate(zip(axes, names)):
-        for label in label_order(list(groups)):
-            _success_band(ax, groups[label], label, styles[label], opts, task=i)
-        ax.set_title(short_task_name(name), fontsize=9)
-        ax.set_ylim(-2, 102)
-        ax.tick_params(labelsize=7)
-        ax.grid(alpha=0.3)
-    handles, labels = axes[0].get_legend_handles_labels()
-    if handles:
-        fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=8)
-    _title(fig, f"{bench}: success rate (%) per task vs {opts.xlabel}")
-    _save(fig, opts.out / f"per_task_{safe_name(bench)}.png", opts, written)
 
 
 def _twin_panel(ax: Axes, success: Series | None, other: Series | None, other_label: str) -> Axes:
@@ -263,18 +199,20 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
     for label in label_order(list(with_loss)):
         runs = with_loss[label]
         names = runs[0].task_names
-        fig, axes = _panels(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
+        fig, axes = panel_grid(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
         for ax, i in zip(axes, _selected_tasks(names, opts.tasks)):
             success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
             loss = _mean_series(runs, lambda r, i=i: task_scalar(r, "train/critic_loss", i), opts)
             _twin_panel(ax, success, loss, "soft Bellman error")
             ax.set_title(short_task_name(names[i]), fontsize=9)
-        _title(fig, f"{bench}, {label}: success rate % (blue) and soft Bellman error J^Q (orange) vs {opts.xlabel}")
-        _save(fig, opts.out / f"bellman_{safe_name(bench)}_{safe_name(label)}.png", opts, written)
+        wrapped_title(
+            fig, f"{bench}, {label}: success rate % (blue) and soft Bellman error J^Q (orange) vs {opts.xlabel}"
+        )
+        save_figure(fig, opts.out / f"bellman_{safe_name(bench)}_{safe_name(label)}.png", opts, written)
     if not with_loss:
         return
     labels = label_order(list(with_loss))
-    fig = _figure(7, 2.8 * len(labels) + 0.6)
+    fig = new_figure(7, 2.8 * len(labels) + 0.6)
     axes = fig.subplots(len(labels), 1, squeeze=False)[:, 0]
     for ax, label in zip(axes, labels):
         success = _mean_series(with_loss[label], success_curve, opts)
@@ -283,8 +221,8 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
         twin.set_ylabel("soft Bellman error", color="tab:orange", fontsize=8)
         ax.set_title(f"{label}: average over tasks", fontsize=9)
     axes[-1].set_xlabel(opts.xlabel)
-    _title(fig, f"{bench}: success rate % (blue) and average soft Bellman error (orange)")
-    _save(fig, opts.out / f"bellman_avg_{safe_name(bench)}.png", opts, written)
+    wrapped_title(fig, f"{bench}: success rate % (blue) and average soft Bellman error (orange)")
+    save_figure(fig, opts.out / f"bellman_avg_{safe_name(bench)}.png", opts, written)
 
 
 def plot_negative_transfer(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
@@ -295,16 +233,16 @@ def plot_negative_transfer(bench: str, groups: Groups, opts: PlotOptions, writte
             continue
         name = f"{safe_name(bench)}_{safe_name(label)}.png"
         title = f"{bench}, {label}"
-        _save(_train_frequency_figure(title, runs, opts), opts.out / f"train_frequency_{name}", opts, written)
-        _save(_nt_over_time_figure(title, runs, opts), opts.out / f"nt_{name}", opts, written)
-        _save(_transfer_matrix_figure(title, runs, opts), opts.out / f"nt_matrix_{name}", opts, written)
+        save_figure(_train_frequency_figure(title, runs, opts), opts.out / f"train_frequency_{name}", opts, written)
+        save_figure(_nt_over_time_figure(title, runs, opts), opts.out / f"nt_{name}", opts, written)
+        save_figure(_transfer_matrix_figure(title, runs, opts), opts.out / f"nt_matrix_{name}", opts, written)
 
 
 def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
     """Fig. 5: per task, success and the share of recomputations in which the task was in C_s."""
     names = runs[0].task_names
     tasks = _selected_tasks(names, opts.tasks)
-    fig, axes = _panels(len(tasks), 4, 3.6, 2.8)
+    fig, axes = panel_grid(len(tasks), 4, 3.6, 2.8)
     for ax, i in zip(axes, tasks):
 
         def frequency(run: Run, i: int = i) -> Series:
@@ -316,7 +254,7 @@ def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
         twin = _twin_panel(ax, success, _mean_series(runs, frequency, opts, smoothed=False), "train frequency")
         twin.set_ylim(-0.02, 1.02)
         ax.set_title(short_task_name(names[i]), fontsize=9)
-    _title(
+    wrapped_title(
         fig,
         f"{title}: success rate % (blue) and train frequency (orange, share of recomputations in C_s over "
         f"{opts.freq_window_episodes} episodes) vs {opts.xlabel}",
@@ -327,7 +265,7 @@ def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
 def _nt_over_time_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
     """mu and w per task, and the task information in z (linear probe), over time."""
     names, n = runs[0].task_names, runs[0].n_tasks
-    fig = _figure(9, 8)
+    fig = new_figure(9, 8)
     axes = fig.subplots(3, 1, sharex=True)
     for key, ax, ylabel in (("mu", axes[0], "mu (negative-transfer count, Eq. 6)"), ("weights", axes[1], "w (Eq. 8)")):
         for i in range(n):
@@ -351,7 +289,7 @@ def _nt_over_time_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> 
     axes[2].grid(alpha=0.3)
     axes[2].set_xlabel(opts.xlabel)
     axes[0].legend(fontsize=7, ncol=max(1, math.ceil(n / 10)), loc="upper left", bbox_to_anchor=(1.0, 1.0))
-    _title(fig, f"{title}: negative-transfer measure, task weights and task information in z (mean over seeds)")
+    wrapped_title(fig, f"{title}: negative-transfer measure, task weights and task information in z (mean over seeds)")
     return fig
 
 
@@ -360,7 +298,7 @@ def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
     names = [short_task_name(name) for name in runs[0].task_names]
     times = _matrix_times(runs, opts)
     side = 3.2 + 0.25 * len(names)
-    fig = _figure(side * len(times) + 0.8, side)
+    fig = new_figure(side * len(times) + 0.8, side)
     for ax, t in zip(fig.subplots(1, len(times), squeeze=False)[0], times):
         matrices = []
         for run in runs:
@@ -375,7 +313,7 @@ def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
         ax.set_xlabel("task i (affected)", fontsize=8)
         ax.set_ylabel("task k (virtual step)", fontsize=8)
         fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
-    _title(fig, f"{title}: J_i(theta^k) - J_i(theta) (red < 0: a step on k hurts i); t in {opts.xlabel}", 9)
+    wrapped_title(fig, f"{title}: J_i(theta^k) - J_i(theta) (red < 0: a step on k hurts i); t in {opts.xlabel}", 9)
     return fig
 
 
@@ -389,9 +327,11 @@ def _matrix_times(runs: Sequence[Run], opts: PlotOptions) -> list[float]:
 __all__ = [
     "PlotOptions",
     "algorithm_styles",
+    "new_figure",
+    "panel_grid",
     "plot_bellman",
     "plot_negative_transfer",
-    "plot_per_task",
-    "plot_success",
     "safe_name",
+    "save_figure",
+    "wrapped_title",
 ]

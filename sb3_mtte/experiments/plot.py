@@ -1,24 +1,32 @@
-"""Figures and Table 1 of the paper from a folder of runs.
+"""Figures and Table 1 of the paper from run folders and records.
 
 Usage::
 
-    sb3-mtte plot RUNS_DIR [--out RUNS_DIR] [--tasks reach pick-place] [--matrix-times 1e5 2.5e6 5e6]
-                           [--freq-window-episodes 20] [--smooth 1] [--x per-task|total]
+    sb3-mtte plot SOURCE [SOURCE ...] [--out DIR] [--reps 2000] [--seed 0] [--tasks reach pick-place]
+                  [--matrix-times 1e5 2.5e6 5e6] [--freq-window-episodes 20] [--smooth 1] [--x per-task|total]
 
-Run folders (their files: :mod:`sb3_mtte.experiments.runs`) are found anywhere under RUNS_DIR by their
-``run_info.json``; the zoo writes them as ``RUNS_DIR/<algo>/<env>_<id>/`` (``sb3-mtte train ... -f RUNS_DIR``, or
-``sb3-mtte sweep ... --out RUNS_DIR``). Runs are grouped by benchmark (the env id, so ``MT10`` and ``MT10-smoke``
-stay apart) and by algorithm (``label`` of run_info: SAC-MT, Ours, ...); the runs of a group are its seeds.
+Each SOURCE is a folder searched for run folders (by their ``run_info.json``; the zoo writes them as
+``<folder>/<algo>/<env>_<id>/``) and for records (``sb3-mtte record``: ``docs/records/<env id>/<algo>_seed<k>.json``),
+so ``sb3-mtte plot docs/records --out docs/figures`` redraws the figures and tables from the repository alone. A
+record of a run whose folder is also found is left out. Runs are grouped by benchmark (the env id, so ``MT10`` and
+``MT10-smoke`` stay apart) and by algorithm (``label`` of run_info: SAC-MT, Ours, ...); the runs of a group are its
+seeds.
 
-Written to ``--out``: the figures of :mod:`sb3_mtte.experiments.figures` (heatmaps at ``--matrix-times``), and
+Written to ``--out``, per benchmark ``<b>``:
 
-- ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one record per run that has a
-  ``success.json``: algo, label, benchmark, seed, env_steps, episodes_per_task and success ``{mean, per_task}``;
-- ``table1.md``: final success, mean +- std over seeds, per algorithm and benchmark (also printed). A run's final
-  success is its ``success.json`` when present, else its last evaluation.
+- ``success_<b>.png``, ``per_task_<b>.png`` and ``profile_<b>.png``, every algorithm in each
+  (:mod:`sb3_mtte.experiments.summary_figures`: means over seeds with 95% stratified-bootstrap bands);
+- ``table1_<b>.md`` (also printed): per algorithm n (seeds), mean and IQM of the final success over runs x tasks and
+  the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
+  (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
+  (``success.json``) when present, else its last evaluation;
+- ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one entry per run with a final evaluation;
+- from run folders only (they need the logs that records leave out): the figures of
+  :mod:`sb3_mtte.experiments.figures` (Bellman error, train frequency, mu and w, transfer-matrix heatmaps at
+  ``--matrix-times``).
 
-Success curves come from ``evaluations.npz``, else the ``eval/`` scalars, else the training episodes
-(``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
+Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
+episodes (``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
 """
 
 from __future__ import annotations
@@ -31,39 +39,42 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_mtte.experiments import command_prog
-from sb3_mtte.experiments.figures import (
-    PlotOptions,
-    plot_bellman,
-    plot_negative_transfer,
-    plot_per_task,
-    plot_success,
-    safe_name,
-)
-from sb3_mtte.experiments.results import results_records, table1
-from sb3_mtte.experiments.runs import Run, discover_runs, group_runs
+from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
+from sb3_mtte.experiments.records import load_runs
+from sb3_mtte.experiments.results import benchmark_statistics, results_records, table1
+from sb3_mtte.experiments.runs import Run, group_runs
+from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
+from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
 
 
-def make_plots(runs_dir: str | Path, opts: PlotOptions) -> list[Path]:
-    """Write every figure and ``table1.md`` for the runs under ``runs_dir``; return the written paths."""
-    runs = discover_runs(runs_dir)
+def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
+    """Write every figure and table for the runs and records under ``sources``; return the written paths."""
+    runs = load_runs(sources)
     if not runs:
-        raise FileNotFoundError(f"No run folder (run_info.json) under {runs_dir}.")
+        raise FileNotFoundError(f"No run folder (run_info.json) or record under {', '.join(map(str, sources))}.")
     opts.out.mkdir(parents=True, exist_ok=True)
-    groups = group_runs(runs)
     written: list[Path] = []
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        for bench, by_label in sorted(groups.items()):
-            plot_success(bench, by_label, opts, written)
-            plot_per_task(bench, by_label, opts, written)
+        for bench, by_label in sorted(group_runs(runs).items()):
+            bands = curve_bands(by_label, opts)
+            plot_success(bench, bands, opts, written)
+            plot_per_task(bench, bands, next(iter(by_label.values()))[0].task_names, opts, written)
             plot_bellman(bench, by_label, opts, written)
             plot_negative_transfer(bench, by_label, opts, written)
+            stats = benchmark_statistics(by_label, opts.reps, opts.seed)
+            if stats.scores:
+                plot_profile(bench, stats.scores, opts, written)
+                _write_table(bench, table1(bench, stats, opts.reps, opts.seed), opts, written)
             _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
-    table = table1(groups)
-    (opts.out / "table1.md").write_text(table)
-    written.append(opts.out / "table1.md")
-    print(table)
     return written
+
+
+def _write_table(bench: str, table: str, opts: PlotOptions, written: list[Path]) -> None:
+    path = opts.out / f"table1_{safe_name(bench)}.md"
+    path.write_text(table)
+    written.append(path)
+    print(table)
 
 
 def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list[Path]) -> None:
@@ -79,10 +90,12 @@ def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list
 
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
-    """``python -m sb3_mtte.plot RUNS_DIR [--out DIR] ...``"""
+    """``python -m sb3_mtte.plot SOURCE [SOURCE ...] [--out DIR] ...``"""
     parser = argparse.ArgumentParser(prog=command_prog("plot", "sb3_mtte.plot"), description=__doc__.split("\n\n")[0])
-    parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
-    parser.add_argument("--out", default=None, help="output folder (default: RUNS_DIR itself, beside the runs)")
+    parser.add_argument("sources", nargs="+", help="folders holding run folders (run_info.json) and/or records")
+    parser.add_argument("--out", default=None, help="output folder (default: the first SOURCE, beside the runs)")
+    parser.add_argument("--reps", type=int, default=DEFAULT_REPS, help=f"bootstrap resamples (default {DEFAULT_REPS})")
+    parser.add_argument("--seed", type=int, default=DEFAULT_SEED, help=f"bootstrap seed (default {DEFAULT_SEED})")
     parser.add_argument("--x", choices=["per-task", "total"], default="per-task", help="time axis (default per-task)")
     parser.add_argument("--smooth", type=int, default=1, help="moving-average window in points (default 1: none)")
     parser.add_argument("--tasks", nargs="+", default=None, help="tasks of Figs. 3 and 5 (default: all)")
@@ -98,7 +111,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     opts = PlotOptions(
-        out=Path(args.runs_dir if args.out is None else args.out),
+        out=Path(args.sources[0] if args.out is None else args.out),
         x_per_task=args.x == "per-task",
         smooth=args.smooth,
         tasks=args.tasks,
@@ -106,7 +119,11 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         freq_window_episodes=args.freq_window_episodes,
         dpi=args.dpi,
         results_dir=None if args.results_dir is None else Path(args.results_dir),
+        reps=args.reps,
+        seed=args.seed,
     )
-    written = make_plots(args.runs_dir, opts)
+    if args.reps < 1:
+        parser.error("--reps must be at least 1")
+    written = make_plots(args.sources, opts)
     print(f"Wrote {len(written)} files to {opts.out}/")
     return written

@@ -1,12 +1,25 @@
 """The record of a finished run: a small, versioned JSON file that figures and tables can be redrawn from.
 
 A run folder holds the models, the replay buffer and the logs; its record keeps what the results need and fits in a
-repository: the evaluation curve (env steps and per-task success at every periodic evaluation), the final
-evaluation (``success.json``: per-task success and its episode count), for MTSACTE the task probes of z, E_phi's
-standard deviation and the mean of mu and w over the run, and the run's zoo key, benchmark, seed, budget,
-hyperparameters, package versions and commit.
+repository. Its fields (format :data:`RECORD_VERSION`):
 
-    sb3-mtte record RUNS_DIR --out docs/records/MT10-cpu
+- ``record_version``; ``algo`` (zoo key), ``label``, ``env_id`` (e.g. ``MT10-cpu``), ``benchmark`` (e.g. ``MT10``),
+  ``seed``, ``task_names``, ``n_tasks``, ``episode_length``, ``started`` (when the run started: with env id, label and
+  seed it names the run);
+- ``budget``: ``n_timesteps`` (planned env steps, all tasks), ``timesteps`` (reached) and ``finished``;
+- ``hyperparams`` (every hyperparameter as loaded), ``versions`` (packages), ``git`` (commit, branch, dirty flag),
+  ``resumes`` (how many times the run was resumed);
+- ``curve``: ``env_steps`` (all tasks) and ``success_rate`` ``(evaluations, tasks)`` of every periodic evaluation,
+  and its ``episodes_per_task``;
+- ``final``: the final evaluation (``success.json``): ``mean``, ``per_task``, ``episodes_per_task``, ``env_steps``,
+  ``deterministic``;
+- ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean and
+  z's std; the mean of mu, of w and of C_s membership per task over the run.
+
+Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (the default ``--out`` is
+``docs/records``)::
+
+    sb3-mtte record RUNS_DIR [--out docs/records]
 """
 
 from __future__ import annotations
@@ -20,9 +33,11 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.experiments import command_prog
+from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.runs import Run, discover_runs
 
-RECORD_VERSION = 1
+RECORD_VERSION = 2
+DEFAULT_RECORDS_DIR = Path("docs/records")
 PROBE_KEYS = ("task_probe_accuracy", "task_probe_accuracy_of_mean", "z_std")
 
 
@@ -32,6 +47,7 @@ def _curve(run: Run) -> dict[str, Any] | None:
     return {
         "env_steps": [int(t) for t in run.evaluations["timesteps"]],
         "success_rate": np.round(np.asarray(run.evaluations["success_rate"], dtype=float), 6).tolist(),
+        "episodes_per_task": run.info.get("hyperparams", {}).get("eval_episodes"),
     }
 
 
@@ -61,7 +77,14 @@ def run_record(run: Run) -> dict[str, Any]:
         "benchmark": info.get("benchmark"),
         "seed": run.seed,
         "task_names": run.task_names,
-        "env_steps": info.get("hyperparams", {}).get("n_timesteps"),
+        "n_tasks": run.n_tasks,
+        "episode_length": info.get("episode_length"),
+        "started": info.get("started"),
+        "budget": {
+            "n_timesteps": info.get("n_timesteps", info.get("hyperparams", {}).get("n_timesteps")),
+            "timesteps": info.get("timesteps"),
+            "finished": info.get("finished"),
+        },
         "hyperparams": info.get("hyperparams"),
         "versions": info.get("versions"),
         "git": info.get("git"),
@@ -80,33 +103,91 @@ def run_record(run: Run) -> dict[str, Any]:
     }
 
 
-def record_name(record: dict[str, Any]) -> str:
-    return f"{record['env_id']}_{record['algo']}_seed{record['seed']}.json"
+def record_path(record: dict[str, Any], out: Path) -> Path:
+    """``out/<env id>/<algo>_seed<k>.json``."""
+    return out / safe_name(str(record["env_id"])) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
 
-def write_records(runs_dir: str | Path, out: str | Path) -> list[Path]:
-    """Write the record of every run folder under ``runs_dir`` that has a final evaluation into ``out``."""
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    written = []
+def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -> list[Path]:
+    """Write the record of every run folder under ``runs_dir`` that has a final evaluation into ``out``
+    (:func:`record_path`); two runs that would share a record file stop it before anything is written."""
+    planned: dict[Path, tuple[Run, dict[str, Any]]] = {}
     for run in discover_runs(runs_dir):
         if run.final is None:
             continue
         record = run_record(run)
-        path = out / record_name(record)
+        path = record_path(record, Path(out))
+        if path in planned:
+            raise SystemExit(
+                f"{planned[path][0].path} and {run.path} would both be recorded as {path}: "
+                "record them one at a time (pass one run folder) into different --out folders"
+            )
+        planned[path] = (run, record)
+    for path, (_, record) in planned.items():
+        path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(record, indent=1) + "\n")
-        written.append(path)
-    return written
+    return list(planned)
 
 
-def read_records(folder: str | Path) -> list[dict[str, Any]]:
-    """Every record (``*.json`` with a ``record_version``) under ``folder``."""
+def _read_json(path: Path) -> Any:
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise SystemExit(f"{path} is not valid JSON ({error}): fix or remove it") from None
+
+
+def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
+    """Every record (``*.json`` holding a ``record_version``) under ``folder``, with its path, sorted by path."""
     records = []
     for path in sorted(Path(folder).rglob("*.json")):
-        data = json.loads(path.read_text())
+        data = _read_json(path)
         if isinstance(data, dict) and "record_version" in data:
-            records.append(data)
+            if data["record_version"] > RECORD_VERSION:
+                raise SystemExit(
+                    f"{path} has record format {data['record_version']}, newer than this package's "
+                    f"{RECORD_VERSION}: update sb3-mtte"
+                )
+            records.append((path, data))
     return records
+
+
+def run_from_record(record: dict[str, Any], path: Path) -> Run:
+    """A :class:`Run` holding what a record keeps (no scalars or negative-transfer log), for the figures and tables."""
+    keys = ("algo", "label", "env_id", "benchmark", "seed", "task_names", "n_tasks", "episode_length", "started")
+    info = {key: record.get(key) for key in keys}
+    info["hyperparams"] = record.get("hyperparams") or {}
+    run = Run(path, info)
+    curve = record.get("curve")
+    if curve:
+        run.evaluations = {
+            "timesteps": np.asarray(curve["env_steps"], dtype=float),
+            "success_rate": np.asarray(curve["success_rate"], dtype=float),
+            "task_names": np.asarray(record.get("task_names") or []),
+        }
+    final = record.get("final")
+    if final:
+        run.final = {key: final.get(key) for key in ("mean", "per_task", "episodes_per_task", "deterministic")}
+        run.final["timesteps"] = final.get("env_steps")
+    return run
+
+
+def _run_key(run: Run) -> tuple[Any, ...]:
+    return run.benchmark, run.label, run.seed, run.info.get("started")
+
+
+def load_runs(sources: Sequence[str | Path]) -> list[Run]:
+    """The runs under every source folder: its run folders (``run_info.json``) and its records; a record of a run
+    whose folder is also found (same env id, label, seed and start time) is left out, the folder holding more."""
+    folders = [run for source in sources for run in discover_runs(source)]
+    seen = {_run_key(run) for run in folders}
+    from_records = []
+    for source in sources:
+        for path, record in read_records(source):
+            run = run_from_record(record, path)
+            if _run_key(run) not in seen:
+                seen.add(_run_key(run))
+                from_records.append(run)
+    return folders + from_records
 
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
@@ -114,7 +195,11 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         prog=command_prog("record", "sb3_mtte.record"), description=__doc__.split("\n\n")[0]
     )
     parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
-    parser.add_argument("--out", required=True, help="folder for the records")
+    parser.add_argument(
+        "--out",
+        default=str(DEFAULT_RECORDS_DIR),
+        help=f"folder for the records, written as <env id>/<algo>_seed<k>.json (default: {DEFAULT_RECORDS_DIR})",
+    )
     args = parser.parse_args(argv)
     paths = write_records(args.runs_dir, args.out)
     for path in paths:
@@ -124,4 +209,14 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     return paths
 
 
-__all__ = ["RECORD_VERSION", "main", "read_records", "run_record", "write_records"]
+__all__ = [
+    "DEFAULT_RECORDS_DIR",
+    "RECORD_VERSION",
+    "load_runs",
+    "main",
+    "read_records",
+    "record_path",
+    "run_from_record",
+    "run_record",
+    "write_records",
+]

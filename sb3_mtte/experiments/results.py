@@ -1,24 +1,23 @@
-"""Final results of a folder of runs: Table 1 (markdown) and one JSON record per evaluated run."""
+"""Final results of a benchmark's runs: Table 1 (markdown, with rliable's aggregates) and the results JSON."""
 
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from sb3_mtte.experiments.runs import Run, label_order, success_curve
+from sb3_mtte.experiments.runs import Run, label_order
+from sb3_mtte.experiments.statistics import (
+    DEFAULT_REPS,
+    DEFAULT_SEED,
+    Estimate,
+    aggregate_estimates,
+    improvement_probabilities,
+    score_matrix,
+)
 from sb3_mtte.experiments.variants import paper_sources, paper_table1
-
-
-def final_success(run: Run) -> float | None:
-    """Final mean success of a run: its ``success.json``, else its last evaluation, else its last success scalar."""
-    if run.final is not None and "mean" in run.final:
-        return float(run.final["mean"])
-    curve = success_curve(run)
-    if curve is None or not len(curve[1]):
-        return None
-    return float(curve[1][-1])
 
 
 def results_records(runs: Sequence[Run]) -> list[dict[str, Any]]:
@@ -43,42 +42,78 @@ def results_records(runs: Sequence[Run]) -> list[dict[str, Any]]:
     return sorted(records, key=lambda r: (order[r["label"]], r["seed"] if r["seed"] is not None else -1))
 
 
-def _success_cell(values: list[float]) -> str:
-    """'mean ± std% (n=...)' over seeds; one seed has no spread to show."""
-    if not values:
+OURS_ALGO = "mtsacte"
+"""Zoo key of the method whose probability of improvement over every other method the table shows."""
+
+
+@dataclass
+class BenchmarkStatistics:
+    """Final success of one benchmark's algorithms: ``scores`` label -> ``(runs, tasks)``, the mean and IQM of each
+    with its interval, and P(Ours > label) for every other label (empty without Ours)."""
+
+    scores: dict[str, np.ndarray]
+    aggregates: dict[str, dict[str, Estimate]]
+    ours: str | None
+    improvement: dict[str, Estimate]
+
+
+def ours_label(groups: dict[str, list[Run]]) -> str | None:
+    """The label of the runs of :data:`OURS_ALGO`, if any."""
+    return next((label for label, runs in groups.items() if any(r.info.get("algo") == OURS_ALGO for r in runs)), None)
+
+
+def benchmark_statistics(
+    groups: dict[str, list[Run]], reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED
+) -> BenchmarkStatistics:
+    """Score matrices and their aggregates (rliable) for the algorithms of one benchmark, in label order."""
+    scores = {}
+    for label in label_order(list(groups)):
+        matrix = score_matrix(groups[label])
+        if matrix is not None:
+            scores[label] = matrix
+    ours = ours_label({label: groups[label] for label in scores})
+    baselines = {label: matrix for label, matrix in scores.items() if label != ours}
+    improvement = improvement_probabilities(scores[ours], baselines, reps, seed) if ours and baselines else {}
+    return BenchmarkStatistics(scores, aggregate_estimates(scores, reps, seed) if scores else {}, ours, improvement)
+
+
+def _cell(estimate: Estimate | None, scale: float = 100.0, digits: int = 1) -> str:
+    if estimate is None:
         return "-"
-    if len(values) == 1:
-        return f"{100 * values[0]:.1f}% (n=1)"
-    return f"{100 * np.mean(values):.1f} ± {100 * np.std(values):.1f}% (n={len(values)})"
+    value, low, high = (f"{scale * v:.{digits}f}" for v in (estimate.value, estimate.low, estimate.high))
+    return f"{value} [{low}, {high}]"
 
 
-def table1(groups: dict[str, dict[str, list[Run]]], with_paper: bool = True) -> str:
-    """Markdown Table 1: final success (%) mean +- std over seeds, per algorithm (rows) and benchmark (columns)."""
-    benches = sorted(groups)
-    labels = label_order(sorted({label for by_label in groups.values() for label in by_label}))
-    lines = [
-        "| Algorithm | " + " | ".join(benches) + " |",
-        "|:--|" + "--:|" * len(benches),
-    ]
-    for label in labels:
-        cells = []
-        for bench in benches:
-            values = [v for v in (final_success(r) for r in groups[bench].get(label, [])) if v is not None]
-            cells.append(_success_cell(values))
-        lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    text = (
-        "Final success rate, mean ± std over seeds (n = number of seeds; no std for one seed); a run's final "
-        "success is its success.json (python -m sb3_mtte.evaluate) when present, else its last evaluation.\n\n"
-        + "\n".join(lines)
+def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, float], reps: int, seed: int) -> str:
+    note = (
+        f"{bench}: final success over runs x tasks. n: seeds; [low, high]: 95% stratified-bootstrap confidence "
+        f"interval ({reps} resamples, seed {seed}; rliable, Agarwal et al. 2021); IQM: interquartile mean"
     )
-    shown = [b for b in ("MT10", "MT20") if any(b == bench.split("-")[0] for bench in benches)]
-    if with_paper and shown:
-        paper = ["| Algorithm | " + " | ".join(shown) + " |", "|:--|" + "--:|" * len(shown)]
-        for label, values in paper_table1().items():
-            cells = (f"{values[b]:.1f}%" if b in values else "-" for b in shown)
-            paper.append(f"| {label} | " + " | ".join(cells) + " |")
-        sources = "".join(f"\n- {label}: {source}." for label, source in paper_sources().items())
-        text += "\n\nPublished success, for reference: the paper's Table 1 (Meta-World v2, 5 seeds)"
-        text += (", except the rows of another source:" + sources) if sources else ":"
-        text += "\n\n" + "\n".join(paper)
-    return text + "\n"
+    if stats.improvement:
+        note += f"; P({stats.ours} > X): probability that a run of {stats.ours} beats a run of X on a task"
+    note += ". A run's final success is its final evaluation (success.json) when present, else its last evaluation."
+    if published:
+        sources = "".join(f" {label}: {source}." for label, source in paper_sources().items() if label in published)
+        note += " Published: the paper's Table 1 (Meta-World v2, 5 seeds)" + (f", except{sources}" if sources else ".")
+    return note
+
+
+def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED) -> str:
+    """Markdown Table 1 of one benchmark: per algorithm, n (seeds), mean and IQM of the final success over runs x
+    tasks and P(Ours > algorithm), each with its 95% interval, and the published success where there is one."""
+    family = bench.split("-")[0]
+    published = {
+        label: paper[family] for label, paper in paper_table1().items() if label in stats.scores and family in paper
+    }
+    headers = ["Algorithm", "n", "Mean success (%)", "IQM (%)"]
+    headers += [f"P({stats.ours} > X)"] if stats.improvement else []
+    headers += ["Published (%)"] if published else []
+    lines = ["| " + " | ".join(headers) + " |", "|:--|" + "--:|" * (len(headers) - 1)]
+    for label, matrix in stats.scores.items():
+        cells = [label, str(len(matrix)), _cell(stats.aggregates[label]["mean"]), _cell(stats.aggregates[label]["iqm"])]
+        if stats.improvement:
+            cells.append(_cell(stats.improvement.get(label), scale=1.0, digits=2))
+        if published:
+            cells.append(f"{published[label]:.1f}" if label in published else "-")
+        lines.append("| " + " | ".join(cells) + " |")
+    return _table_note(bench, stats, published, reps, seed) + "\n\n" + "\n".join(lines) + "\n"

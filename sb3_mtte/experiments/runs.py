@@ -201,12 +201,16 @@ def mean_std(curves: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarr
     if len(curves) == 1:
         x, y = curves[0]
         return x, y, np.zeros_like(y)
-    lo, hi = max(x.min() for x, _ in curves), min(x.max() for x, _ in curves)
-    grid = np.unique(np.concatenate([x[(x >= lo) & (x <= hi)] for x, _ in curves]))
-    if len(grid) == 0:
-        grid = curves[0][0]
+    grid = common_grid(curves)
     stacked = np.stack([np.interp(grid, x, y) for x, y in curves])
     return grid, stacked.mean(axis=0), stacked.std(axis=0)
+
+
+def common_grid(curves: Sequence[Series]) -> np.ndarray:
+    """The x values of all ``curves`` within their shared range (the first curve's x when they share none)."""
+    lo, hi = max(x.min() for x, _ in curves), min(x.max() for x, _ in curves)
+    grid = np.unique(np.concatenate([x[(x >= lo) & (x <= hi)] for x, _ in curves]))
+    return grid if len(grid) else np.asarray(curves[0][0], float)
 
 
 def nt_arrays(run: Run, key: str) -> tuple[np.ndarray, np.ndarray]:

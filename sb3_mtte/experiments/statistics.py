@@ -1,0 +1,158 @@
+"""Aggregate statistics of the field (Agarwal et al., 2021), computed with rliable.
+
+Scores are success rates in [0, 1], one matrix ``(runs, tasks)`` per algorithm (its seeds x the benchmark's tasks),
+or ``(runs, tasks, times)`` for curves. Intervals are 95% stratified-bootstrap confidence intervals over runs
+(runs are resampled within each task). rliable draws its resamples from numpy's global generator, so every estimate
+here runs under :func:`seeded`, which sets it from ``seed`` and restores it afterwards: the same scores and seed
+give the same intervals.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass
+
+import numpy as np
+from rliable import library as rly
+from rliable import metrics
+
+from sb3_mtte.experiments.runs import Run, success_curve
+
+DEFAULT_REPS = 2000
+DEFAULT_SEED = 0
+PROFILE_TAUS = np.linspace(0.0, 1.0, 21)
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A point estimate and its 95% confidence interval."""
+
+    value: float
+    low: float
+    high: float
+
+
+@contextmanager
+def seeded(seed: int) -> Iterator[None]:
+    """numpy's global generator set from ``seed`` (rliable's resamples come from it), restored on exit."""
+    state = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", FutureWarning)  # arch's notice on the random_state argument
+            yield
+    finally:
+        np.random.set_state(state)
+
+
+def _intervals(
+    scores: Mapping[str, np.ndarray | list[np.ndarray]], func: Callable[..., np.ndarray], reps: int, seed: int
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    with seeded(seed):
+        return rly.get_interval_estimates(dict(scores), func, reps=reps)
+
+
+def aggregate_estimates(
+    scores: Mapping[str, np.ndarray], reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED
+) -> dict[str, dict[str, Estimate]]:
+    """``{label: {"mean": Estimate, "iqm": Estimate}}`` over runs x tasks of each ``(runs, tasks)`` matrix."""
+
+    def mean_and_iqm(matrix: np.ndarray) -> np.ndarray:
+        return np.array([metrics.aggregate_mean(matrix), metrics.aggregate_iqm(matrix)])
+
+    points, intervals = _intervals(scores, mean_and_iqm, reps, seed)
+    return {
+        label: {
+            name: Estimate(float(points[label][j]), float(intervals[label][0, j]), float(intervals[label][1, j]))
+            for j, name in enumerate(("mean", "iqm"))
+        }
+        for label in scores
+    }
+
+
+def improvement_probabilities(
+    ours: np.ndarray, baselines: Mapping[str, np.ndarray], reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED
+) -> dict[str, Estimate]:
+    """P(ours > baseline) per baseline: the chance that a run of ``ours`` beats one of the baseline on a task,
+    averaged over tasks, with runs of each algorithm resampled independently within each task."""
+
+    def probability(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        return np.array([metrics.probability_of_improvement(x, y)])
+
+    pairs = {label: [ours, scores] for label, scores in baselines.items()}
+    points, intervals = _intervals(pairs, probability, reps, seed)
+    return {
+        label: Estimate(float(points[label][0]), float(intervals[label][0, 0]), float(intervals[label][1, 0]))
+        for label in baselines
+    }
+
+
+def performance_profiles(
+    scores: Mapping[str, np.ndarray],
+    taus: np.ndarray = PROFILE_TAUS,
+    reps: int = DEFAULT_REPS,
+    seed: int = DEFAULT_SEED,
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Score distributions: per label, the share of runs x tasks with success above each tau, and its interval
+    ``(2, len(taus))``."""
+    with seeded(seed):
+        return rly.create_performance_profile(dict(scores), taus, reps=reps)
+
+
+def curve_estimates(curves: np.ndarray, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED) -> dict[str, np.ndarray]:
+    """Mean curves and their pointwise intervals from ``curves (runs, tasks, times)``: ``mean`` and ``low``/``high``
+    of the mean over tasks ``(times,)``, and ``task_mean``/``task_low``/``task_high`` of each task ``(tasks, times)``
+    (the mean over runs)."""
+    n_tasks, n_times = curves.shape[1:]
+
+    def means(sample: np.ndarray) -> np.ndarray:
+        return np.concatenate([sample.mean(axis=(0, 1)), sample.mean(axis=0).ravel()])
+
+    points, intervals = _intervals({"curves": curves}, means, reps, seed)
+    point, (low, high) = points["curves"], intervals["curves"]
+    per_task = (n_tasks, n_times)
+    return {
+        "mean": point[:n_times],
+        "low": low[:n_times],
+        "high": high[:n_times],
+        "task_mean": point[n_times:].reshape(per_task),
+        "task_low": low[n_times:].reshape(per_task),
+        "task_high": high[n_times:].reshape(per_task),
+    }
+
+
+def final_task_scores(run: Run) -> np.ndarray | None:
+    """A run's final success per task: its final evaluation (``success.json``), else the last point of each task's
+    success curve; None when a task has neither."""
+    per_task = (run.final or {}).get("per_task")
+    if per_task and all(name in per_task for name in run.task_names):
+        return np.array([float(per_task[name]) for name in run.task_names])
+    scores = []
+    for task in range(run.n_tasks):
+        curve = success_curve(run, task)
+        if curve is None or not len(curve[1]):
+            return None
+        scores.append(float(curve[1][-1]))
+    return np.array(scores)
+
+
+def score_matrix(runs: Sequence[Run]) -> np.ndarray | None:
+    """``(runs, tasks)`` final success of the runs that have one; None when none has."""
+    rows = [scores for scores in (final_task_scores(run) for run in runs) if scores is not None]
+    return np.stack(rows) if rows else None
+
+
+__all__ = [
+    "DEFAULT_REPS",
+    "DEFAULT_SEED",
+    "Estimate",
+    "aggregate_estimates",
+    "curve_estimates",
+    "final_task_scores",
+    "improvement_probabilities",
+    "performance_profiles",
+    "score_matrix",
+    "seeded",
+]

@@ -1,0 +1,158 @@
+"""Tests of the run records, of the figures and Table 1 drawn from them, and of the aggregate statistics."""
+
+from __future__ import annotations
+
+import json
+import re
+import shlex
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sb3_mtte import plot
+from sb3_mtte.experiments import records, summary_figures
+from sb3_mtte.experiments.statistics import (
+    aggregate_estimates,
+    curve_estimates,
+    improvement_probabilities,
+)
+
+ROOT = Path(__file__).resolve().parent.parent
+SAMPLES = Path(__file__).resolve().parent / "data" / "records"
+REPS = 60
+
+
+def sample_records(env_id: str) -> dict[str, list[dict]]:
+    """label -> the committed sample records of ``env_id``."""
+    by_label: dict[str, list[dict]] = {}
+    for path in sorted((SAMPLES / env_id).glob("*.json")):
+        record = json.loads(path.read_text())
+        by_label.setdefault(record["label"], []).append(record)
+    return by_label
+
+
+def plain_iqm(values: np.ndarray) -> float:
+    """Mean of the middle half of the sorted values (their count a multiple of 4)."""
+    ordered = np.sort(values.ravel())
+    return float(ordered[len(ordered) // 4 : 3 * len(ordered) // 4].mean())
+
+
+def plain_improvement(x: np.ndarray, y: np.ndarray) -> float:
+    """P(X > Y) per task over every pair of runs (ties count one half), averaged over tasks."""
+    per_task = [
+        np.mean((x[:, None, t] > y[None, :, t]) + 0.5 * (x[:, None, t] == y[None, :, t])) for t in range(x.shape[1])
+    ]
+    return float(np.mean(per_task))
+
+
+# ================================================================================================ statistics
+def test_mean_and_iqm_match_plain_numpy_and_intervals_are_over_runs():
+    scores = np.array([[0.1, 0.9], [0.3, 0.2], [0.8, 0.5], [0.0, 1.0]])  # 4 runs x 2 tasks
+    estimates = aggregate_estimates({"a": scores}, reps=REPS, seed=3)["a"]
+    assert estimates["mean"].value == pytest.approx(scores.mean())
+    assert estimates["iqm"].value == pytest.approx(plain_iqm(scores)) and plain_iqm(scores) != scores.mean()
+    for estimate in estimates.values():
+        assert estimate.low < estimate.value < estimate.high
+    assert aggregate_estimates({"a": scores}, reps=REPS, seed=3)["a"] == estimates  # seeded: reproducible
+    assert aggregate_estimates({"a": scores}, reps=REPS, seed=4)["a"] != estimates
+    # runs are resampled within each task: identical runs leave no uncertainty even though the tasks differ
+    same_runs = np.tile([[0.2, 0.6, 1.0, 0.0]], (3, 1))
+    fixed = aggregate_estimates({"b": same_runs}, reps=REPS)["b"]["mean"]
+    assert fixed.low == fixed.high == pytest.approx(same_runs.mean())
+
+
+def test_probability_of_improvement_matches_pairwise_counts():
+    ours = np.array([[0.5, 0.2], [0.9, 0.2], [0.4, 0.3]])
+    other = np.array([[0.1, 0.2], [0.7, 0.6]])
+    result = improvement_probabilities(ours, {"other": other, "worse": np.zeros((2, 2))}, reps=REPS)
+    assert result["other"].value == pytest.approx(plain_improvement(ours, other))
+    assert result["worse"].value == pytest.approx(plain_improvement(ours, np.zeros((2, 2))))
+    assert 0.0 <= result["other"].low <= result["other"].value <= result["other"].high <= 1.0
+
+
+def test_curve_estimates_average_runs_and_tasks_at_every_time():
+    rng = np.random.default_rng(0)
+    curves = rng.uniform(size=(3, 2, 5))  # runs x tasks x times
+    est = curve_estimates(curves, reps=REPS)
+    np.testing.assert_allclose(est["mean"], curves.mean(axis=(0, 1)))
+    np.testing.assert_allclose(est["task_mean"], curves.mean(axis=0))
+    assert np.all(est["low"] <= est["mean"]) and np.all(est["mean"] <= est["high"]) and np.any(est["low"] < est["high"])
+    one_run = curve_estimates(curves[:1], reps=REPS)
+    np.testing.assert_allclose(one_run["low"], one_run["high"])
+
+
+# ================================================================================================ plot from records
+def readme_plot_command() -> list[str]:
+    """The arguments of the README's command that redraws the figures from docs/records."""
+    readme = (ROOT / "README.md").read_text()
+    (line,) = re.findall(r"^python -m sb3_mtte\.plot docs/records .*$", readme, flags=re.MULTILINE)
+    return shlex.split(line)[3:]
+
+
+def test_readme_command_draws_one_figure_set_and_table_per_benchmark_from_records(tmp_path, monkeypatch, capsys):
+    """The README's command, run on the committed sample records: per benchmark one success figure, one per-task
+    grid, one profile and one Table 1 with n, mean and IQM (plain numpy) and an interval beside every number."""
+    args = readme_plot_command()
+    assert args[:3] == ["docs/records", "--out", "docs/figures"]
+    args = [str(SAMPLES), "--out", str(tmp_path), *args[3:], "--reps", str(REPS)]
+    figs = {}
+    real_save = summary_figures.save_figure
+
+    def keep(fig, path, opts, written):
+        figs[path.name] = fig
+        real_save(fig, path, opts, written)
+
+    monkeypatch.setattr(summary_figures, "save_figure", keep)
+    written = plot.main(args)
+    kinds = ("success_{}.png", "per_task_{}.png", "profile_{}.png", "table1_{}.md", "results_{}.json")
+    assert sorted(p.name for p in written) == sorted(k.format(b) for b in ("MT10-cpu", "toy-conflict") for k in kinds)
+    for env_id in ("MT10-cpu", "toy-conflict"):
+        by_label = sample_records(env_id)
+        check_table((tmp_path / f"table1_{env_id}.md").read_text(), by_label)
+        check_success_figure(figs[f"success_{env_id}.png"], by_label)
+    assert (tmp_path / "table1_toy-conflict.md").read_text() in capsys.readouterr().out
+
+
+def check_table(table: str, by_label: dict[str, list[dict]]) -> None:
+    header, _, *rows = [line.split("|")[1:-1] for line in table.splitlines() if line.startswith("|")]
+    assert [h.strip() for h in header][:5] == ["Algorithm", "n", "Mean success (%)", "IQM (%)", "P(Ours > X)"]
+    ours = np.array([[r["final"]["per_task"][t] for t in r["task_names"]] for r in by_label["Ours"]])
+    assert len(rows) == len(by_label)
+    for row in rows:
+        label, n, mean, iqm, improvement = (cell.strip() for cell in row[:5])
+        scores = np.array([[r["final"]["per_task"][t] for t in r["task_names"]] for r in by_label[label]])
+        assert int(n) == len(by_label[label])
+        cells = [(mean, 100 * scores.mean(), 1), (iqm, 100 * plain_iqm(scores), 1)]
+        if label != "Ours":
+            cells.append((improvement, plain_improvement(ours, scores), 2))
+        for cell, expected, digits in cells:
+            value, low, high = map(float, re.fullmatch(r"(\S+) \[(\S+), (\S+)\]", cell).groups())
+            assert value == pytest.approx(round(expected, digits), abs=10**-digits / 2 + 1e-9), (label, cell)
+            assert low <= value <= high and low < high, (label, cell)
+
+
+def check_success_figure(fig, by_label: dict[str, list[dict]]) -> None:
+    """One line per method, labelled with its n, on the mean over seeds and tasks of the recorded curves."""
+    (ax,) = fig.axes
+    lines = {line.get_label(): line for line in ax.get_lines()}
+    assert set(lines) == {f"{label} (n={len(runs)})" for label, runs in by_label.items()}
+    assert len(ax.collections) == len(by_label)  # a band per method
+    for label, runs in by_label.items():
+        expected = 100 * np.mean([r["curve"]["success_rate"] for r in runs], axis=(0, 2))
+        np.testing.assert_allclose(lines[f"{label} (n={len(runs)})"].get_ydata(), expected, atol=1e-9)
+
+
+# ================================================================================================ records
+def test_a_record_of_a_newer_format_is_refused(tmp_path):
+    record = json.loads(next(SAMPLES.rglob("*.json")).read_text())
+    (tmp_path / "r.json").write_text(json.dumps({**record, "record_version": records.RECORD_VERSION + 1}))
+    with pytest.raises(SystemExit, match="update sb3-mtte"):
+        plot.main([str(tmp_path), "--reps", "5"])
+
+
+def test_committed_samples_have_the_current_format():
+    for path in SAMPLES.rglob("*.json"):
+        record = json.loads(path.read_text())
+        assert record["record_version"] == records.RECORD_VERSION
+        assert path == records.record_path(record, SAMPLES)
