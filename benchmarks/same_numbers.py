@@ -76,9 +76,7 @@ def differences(expected: dict[str, dict[str, str]], got: dict[str, dict[str, st
     """``case/name`` of every digest that differs or is missing on either side."""
     names = {(case, name) for digests in (expected, got) for case in digests for name in digests[case]}
     return sorted(
-        f"{case}/{name}"
-        for case, name in names
-        if expected.get(case, {}).get(name) != got.get(case, {}).get(name)
+        f"{case}/{name}" for case, name in names if expected.get(case, {}).get(name) != got.get(case, {}).get(name)
     )
 
 

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from same_numbers import CASES, DEFAULT_FILE, differences, main, train_digests  # noqa: E402
+from same_numbers import CASES, DEFAULT_FILE, differences, main, train_digests
 
 
 @pytest.mark.parametrize("case", list(CASES))
@@ -27,6 +27,6 @@ def test_differences_name_changed_and_missing_tensors():
 
 
 def test_a_missing_digest_file_exits_with_one_line(tmp_path, monkeypatch):
-    monkeypatch.setattr("same_numbers.all_digests", lambda: {})
+    monkeypatch.setattr("same_numbers.all_digests", dict)
     with pytest.raises(SystemExit, match="--write"):
         main(["--file", str(tmp_path / "none.json")])
