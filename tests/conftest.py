@@ -8,6 +8,7 @@ import sb3_mtte  # noqa: F401  (first: the package sets OpenMP's spin-wait befor
 # isort: split
 
 import copy
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -147,22 +148,24 @@ def loop_objective(policy, actor, batch: RepresentationBatch, ent_coef: th.Tenso
     return -(ent_coef[i] * log_prob - min_q).mean()
 
 
-def stepped_actor(policy, batch, ent_coef, k: int, z: list[th.Tensor], step_size: float) -> nn.Module:
-    """A copy of the actor moved to theta^k = theta + alpha * grad_theta J_k (Eq. 4)."""
+def stepped_actor(policy, batch, ent_coef, k: int, z: list[th.Tensor], step_size: float) -> Callable:
+    """The raw output (``dist_params``) of a copy of the actor moved to theta^k = theta + alpha * grad_theta J_k
+    (Eq. 4); any actor architecture."""
     params = list(policy.actor.parameters())
-    grads = th.autograd.grad(loop_objective(policy, policy.actor.net, batch, ent_coef, k, z[k]), params)
-    actor_k = copy.deepcopy(policy.actor.net)
+    grads = th.autograd.grad(loop_objective(policy, policy.actor.dist_params, batch, ent_coef, k, z[k]), params)
+    actor_k = copy.deepcopy(policy.actor)
     with th.no_grad():
         for param, g in zip(actor_k.parameters(), grads):
             param.add_(step_size * g)
-    return actor_k
+    return actor_k.dist_params
 
 
 def loop_transfer(policy, batch, ent_coef, step_size: float) -> tuple[th.Tensor, th.Tensor]:
     """J_i(theta) and the N x N matrix [k, i] = J_i(theta^k) - J_i(theta), with two plain loops."""
     n = policy.n_tasks
     z = [loop_embedding(policy, batch, i)[0].detach() for i in range(n)]
-    before = th.stack([loop_objective(policy, policy.actor.net, batch, ent_coef, i, z[i]) for i in range(n)]).detach()
+    actor = policy.actor.dist_params
+    before = th.stack([loop_objective(policy, actor, batch, ent_coef, i, z[i]) for i in range(n)]).detach()
     matrix = th.zeros(n, n, dtype=before.dtype)
     for k in range(n):
         actor_k = stepped_actor(policy, batch, ent_coef, k, z, step_size)

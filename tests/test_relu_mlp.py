@@ -1,12 +1,15 @@
 """The one-node ReLU MLP computes what the layer-by-layer graph computes: values and every gradient."""
 
+import configparser
+from pathlib import Path
+
 import pytest
 import torch as th
 from torch import nn
 from torch.func import grad, vmap
 
 from sb3_mtte.common.ensemble import EnsembleMLP, mlp
-from sb3_mtte.common.relu_mlp import fused_relu_mlp
+from sb3_mtte.common.relu_mlp import TESTED_TORCH, fused_relu_mlp
 
 
 def loop_forward(weights, biases, x, stacked: bool, relu_last: bool) -> th.Tensor:
@@ -158,21 +161,58 @@ def test_other_activations_keep_the_layer_by_layer_graph():
 def test_a_pytorch_without_the_private_functions_takes_the_layer_by_layer_graph(monkeypatch, missing, case):
     """If a PyTorch release renames either private function, every network still runs (layer by layer) with the
     same values and gradients, and torch.func transforms keep working."""
-    make, shape, stacked, relu_last = CASES[case]
+    make, shape, stacked, _ = CASES[case]
     th.manual_seed(8)
     net = make().double()
     x = th.randn(*shape, dtype=th.double)
     expected = net(x)
     expected_grads = th.autograd.grad(expected.pow(2).sum(), list(net.parameters()))
+    with fused_relu_mlp(False):
+        plain = net(x)
+        plain_grads = th.autograd.grad(plain.pow(2).sum(), list(net.parameters()))
     monkeypatch.delattr(th._C, missing)
     out = net(x)
     assert "ReLUMLP" not in type(out.grad_fn).__name__
     th.testing.assert_close(out, expected, rtol=1e-12, atol=1e-12)
-    for g, e in zip(th.autograd.grad(out.pow(2).sum(), list(net.parameters())), expected_grads, strict=True):
+    assert th.equal(out, plain)  # exactly the plain path
+    got_grads = th.autograd.grad(out.pow(2).sum(), list(net.parameters()))
+    for g, e, p in zip(got_grads, expected_grads, plain_grads, strict=True):
         th.testing.assert_close(g, e, rtol=1e-12, atol=1e-12)
+        assert th.equal(g, p)
     if not stacked:  # a transform: gradients per row
         params = dict(net.named_parameters())
         per_row = vmap(grad(lambda p, row: th.func.functional_call(net, p, (row,)).sum()), in_dims=(None, 0))(
             params, x.unsqueeze(1)
         )
         assert all(v.shape[0] == x.shape[0] for v in per_row.values())
+
+
+@pytest.mark.parametrize("version", ["2.12.1", "2.14.0", "3.0.0", "2.14.0a0+git1234", "unknown"])
+@pytest.mark.parametrize("case", ["ensemble", "mlp 2-D"])
+def test_an_untested_pytorch_release_takes_the_layer_by_layer_graph(monkeypatch, version, case):
+    make, shape, _, _ = CASES[case]
+    th.manual_seed(9)
+    net = make().double()
+    x = th.randn(*shape, dtype=th.double, requires_grad=True)
+    with fused_relu_mlp(False):
+        plain = net(x)
+    monkeypatch.setattr(th, "__version__", version)
+    out = net(x)
+    assert "ReLUMLP" not in type(out.grad_fn).__name__
+    assert th.equal(out, plain)
+
+
+@pytest.mark.parametrize("version", ["2.13.0", "2.13.1+cu121", "2.13.0+cpu"])
+def test_a_tested_pytorch_release_takes_the_fused_node(monkeypatch, version):
+    monkeypatch.setattr(th, "__version__", version)
+    out = mlp(3, [5], 1, nn.ReLU)(th.randn(2, 3))
+    assert "ReLUMLP" in type(out.grad_fn).__name__
+
+
+def test_setup_cfg_pins_the_tested_pytorch_releases():
+    config = configparser.ConfigParser()
+    config.read(Path(__file__).resolve().parents[1] / "setup.cfg")
+    requirements = [line.split("#")[0].strip() for line in config["options"]["install_requires"].splitlines()]
+    (lower_major, lower_minor), (upper_major, upper_minor) = TESTED_TORCH
+    assert f"torch>={lower_major}.{lower_minor},<{upper_major}.{upper_minor}" in requirements
+    assert (lower_major, lower_minor) <= tuple(int(v) for v in th.__version__.split(".")[:2]) < TESTED_TORCH[1]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import torch as th
 from torch import nn
+from torch.func import functional_call
 
 from sb3_mtte.common.ensemble import EnsembleMLP
 
@@ -42,6 +43,30 @@ class MultiTaskCritic(nn.Module):
         in_dim = state_dim + action_dim + (0 if self.per_task else n_tasks)
         n_members = n_critics * (n_tasks if self.per_task else 1)
         self.q_net = EnsembleMLP(n_members, in_dim, net_arch, 1, activation_fn)
+
+    def task_parameters(self) -> dict[str, th.Tensor]:
+        """The Q-networks' parameters by task, ``{name: (N, n_critics, ...)}``, the layout of
+        :meth:`forward_stacked`: views of the per-task members, or the shared twins repeated for every task."""
+        if self.per_task:
+            return {
+                name: p.view(self.n_tasks, self.n_critics, *p.shape[1:]) for name, p in self.q_net.named_parameters()
+            }
+        return {name: p.expand(self.n_tasks, *p.shape) for name, p in self.q_net.named_parameters()}
+
+    def forward_stacked(self, task_params: dict[str, th.Tensor], obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
+        """Q-values of task-major rows, each task's rows through its own set of twin parameters.
+
+        :param task_params: ``{name: (T, n_critics, ...)}`` as :meth:`task_parameters` gives them, for T tasks (all,
+            a subset, or one with a leading axis of 1).
+        :param obs: ``(T, B, state_dim + N)`` observations.
+        :param actions: ``(T, B, action_dim)``.
+        :return: ``(T, n_critics, B)``.
+        """
+        x = th.cat([obs[..., : -self.n_tasks] if self.per_task else obs, actions], dim=-1)
+        n_sets, length, width = x.shape
+        x = x.unsqueeze(1).expand(n_sets, self.n_critics, length, width).reshape(-1, length, width)
+        members = {name: p.flatten(0, 1) for name, p in task_params.items()}
+        return functional_call(self.q_net, members, (x,)).view(n_sets, self.n_critics, length)
 
     def forward(self, obs: th.Tensor, actions: th.Tensor) -> th.Tensor:
         """Q-values of a task-major batch.

@@ -6,6 +6,7 @@ import math
 
 import torch as th
 from torch import nn
+from torch.func import functional_call, vmap
 
 from sb3_mtte.common.relu_mlp import fused_relu_mlp_applies, relu_mlp
 
@@ -100,6 +101,27 @@ class MLP(nn.Sequential):
             weights, biases = [layer.weight for layer in linears], [layer.bias for layer in linears]
             return relu_mlp(x, weights, biases, stacked=False, relu_last=isinstance(self[-1], nn.ReLU))
         return super().forward(x)
+
+    def forward_stacked(self, params: dict[str, th.Tensor], x: th.Tensor) -> th.Tensor:
+        """The network under K parameter sets at once: each linear layer one batched matmul over the sets, any
+        other module with parameters mapped over them (``vmap``), parameter-free modules applied as they are.
+
+        :param params: ``{"<index>.<name>": (K, ...)}``, named as :meth:`named_parameters`.
+        :param x: ``(K, B, in)``, or ``(1, B, in)`` for the same rows under every set.
+        :return: ``(K, B, out)``.
+        """
+        n_sets = next(iter(params.values())).shape[0]
+        for index, module in enumerate(self):
+            own = {name: params[f"{index}.{name}"] for name, _ in module.named_parameters()}
+            if type(module) is nn.Linear and module.bias is not None:
+                x = th.baddbmm(own["bias"].unsqueeze(1), x.expand(n_sets, *x.shape[1:]), own["weight"].transpose(1, 2))
+            elif own:
+                x = vmap(lambda p, h, module=module: functional_call(module, p, (h,)))(
+                    own, x.expand(n_sets, *x.shape[1:])
+                )
+            else:
+                x = module(x)
+        return x
 
 
 def mlp(in_features: int, hidden_sizes: list[int], out_features: int, activation_fn: type[nn.Module]) -> MLP:

@@ -14,6 +14,7 @@ from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
+from torch.func import functional_call, vmap
 
 from sb3_mtte.common.critics import MultiTaskCritic
 from sb3_mtte.common.distributions import squashed_gaussian, squashed_gaussian_action
@@ -25,8 +26,10 @@ DEFAULT_NET_ARCH = [400, 400]
 class MultiTaskActor(nn.Module):
     """A tanh-squashed Gaussian policy for N tasks; subclasses implement :meth:`dist_params`.
 
-    One forward pass serves training and the negative-transfer evaluation (:meth:`forward`, task-major) and
-    acting (:meth:`act`, rows in any order); both go through :func:`~sb3_mtte.common.distributions.squashed_gaussian`.
+    One forward pass serves training and the per-task gradients of the negative-transfer evaluation (:meth:`forward`,
+    task-major) and acting (:meth:`act`, rows in any order); :meth:`forward_stacked` is the same pass under several
+    parameter sets at once (the virtual steps theta^k). All go through
+    :func:`~sb3_mtte.common.distributions.squashed_gaussian`.
 
     :param state_dim: size of the state part of the input.
     :param action_dim: size of the action.
@@ -69,6 +72,21 @@ class MultiTaskActor(nn.Module):
         if self.keep_output and params.requires_grad:
             self.kept_output = (obs, params)
         return squashed_gaussian(params, noise)
+
+    def forward_stacked(
+        self, params: dict[str, th.Tensor], obs: th.Tensor, noise: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """:meth:`forward` under K parameter sets at once, every set on the whole batch with the same noise.
+
+        This generic form maps :meth:`forward` over the sets with ``vmap``; an actor that knows its network
+        overrides it with an equal, faster form.
+
+        :param params: ``{name: (K, ...)}``, named as :meth:`named_parameters`.
+        :param obs: ``(N, L, obs_dim)`` task-major batch.
+        :param noise: ``(N, L, A)`` standard normal noise.
+        :return: actions ``(K, N, L, A)`` and log-probabilities ``(K, N, L)``.
+        """
+        return vmap(lambda set_params: functional_call(self, set_params, (obs, noise)))(params)
 
     def act(self, obs: th.Tensor, deterministic: bool = False) -> th.Tensor:
         """Actions ``(B, A)`` for observations ``(B, obs_dim)`` in any order (tasks read from the one-hot)."""

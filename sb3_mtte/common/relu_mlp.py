@@ -7,20 +7,26 @@ backward pass masks each input gradient in the buffer its matmul just wrote. The
 layer-by-layer graph (``tests/test_relu_mlp.py`` compares values and gradients).
 
 The layer-by-layer graph is used instead inside ``torch.func`` transforms (``vmap``/``grad``/``vjp``), under
-autocast, within ``with fused_relu_mlp(False):``, and on a PyTorch without the two private functions that tell a
-transform or a vmapped tensor apart (``torch._C._are_functorch_transforms_active``, ``torch._C._dispatch_keys``). The node is differentiable once: a backward pass through it
-with ``create_graph=True`` raises an error that says to turn it off.
+autocast, within ``with fused_relu_mlp(False):``, on a PyTorch release outside :data:`TESTED_TORCH` (the range
+setup.cfg pins), and on a PyTorch without the two private functions that tell a transform or a vmapped tensor apart
+(``torch._C._are_functorch_transforms_active``, ``torch._C._dispatch_keys``). The node is differentiable once: a
+backward pass through it with ``create_graph=True`` raises an error that says to turn it off.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from contextlib import contextmanager
+from functools import lru_cache
 
 import torch as th
 
 _threshold_backward = th.ops.aten.threshold_backward
 _enabled = True
+
+TESTED_TORCH = ((2, 13), (2, 14))
+"""PyTorch releases ``[lower, upper)`` (major, minor) the fused node is tested on, the range setup.cfg pins."""
 
 
 @contextmanager
@@ -40,11 +46,20 @@ def private_internals_present() -> bool:
     return all(hasattr(th._C, name) for name in ("_are_functorch_transforms_active", "_dispatch_keys"))
 
 
+@lru_cache
+def tested_release(version: str) -> bool:
+    """Whether PyTorch ``version`` (``th.__version__``) lies in :data:`TESTED_TORCH`."""
+    match = re.match(r"(\d+)\.(\d+)", version)
+    lower, upper = TESTED_TORCH
+    return match is not None and lower <= (int(match[1]), int(match[2])) < upper
+
+
 def fused_relu_mlp_applies(x: th.Tensor, stacked: bool) -> bool:
-    """Whether :func:`relu_mlp` may take ``x``: turned on, PyTorch's private functions present, not under a
-    ``torch.func`` transform nor autocast, 3-D if stacked."""
+    """Whether :func:`relu_mlp` may take ``x``: turned on, a tested PyTorch release with its private functions, not
+    under a ``torch.func`` transform nor autocast, 3-D if stacked."""
     return (
         _enabled
+        and tested_release(th.__version__)
         and private_internals_present()
         and not th._C._are_functorch_transforms_active()
         and not th.is_autocast_enabled(x.device.type)

@@ -11,7 +11,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
-from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
 
@@ -21,7 +21,10 @@ DETERMINISTIC_Z = ("mean", "sample")
 class EmbeddingActor(MultiTaskActor):
     """pi_theta(a | s, z): the multi-task actor interface on the state followed by the representation z.
 
-    Its inputs are ``(state, z)`` instead of (state, one-hot): the task enters only through z ~ E_phi.
+    Its inputs are ``(state, z)`` instead of (state, one-hot): the task enters only through z ~ E_phi. Its
+    distribution parameters are ``net``'s output, under one parameter set or K stacked ones (:meth:`forward_stacked`
+    hands the rows of all tasks to ``net``'s own stacked forward); a subclass that changes :meth:`dist_params`
+    overrides :meth:`forward_stacked` too.
 
     :param state_dim: size of the state.
     :param z_dim: size of z.
@@ -39,6 +42,13 @@ class EmbeddingActor(MultiTaskActor):
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         return self.net(obs)
+
+    def forward_stacked(
+        self, params: dict[str, th.Tensor], obs: th.Tensor, noise: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor]:
+        net_params = {name.removeprefix("net."): value for name, value in params.items()}
+        dist = self.net.forward_stacked(net_params, obs.reshape(1, -1, obs.shape[-1]))
+        return squashed_gaussian(dist.view(dist.shape[0], *obs.shape[:-1], -1), noise)
 
 
 class MTSACTEPolicy(MultiTaskPolicy):

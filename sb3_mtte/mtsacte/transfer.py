@@ -12,10 +12,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch as th
-from torch import nn
 from torch.func import functional_call, grad, vjp, vmap
 
-from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
+from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std
 from sb3_mtte.common.losses import sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     negative_transfer_objective,
@@ -64,10 +63,8 @@ class TaskObjectives:
         self, policy: MTSACTEPolicy, batch: RepresentationBatch, ent_coef: th.Tensor, chunk_size: int | None = None
     ) -> None:
         self.policy, self.batch, self.chunk_size = policy, batch, chunk_size
-        n, c = policy.n_tasks, policy.n_critics
         self.state = batch.obs[..., : policy.state_dim]
-        self.q_members = {k: v.detach() for k, v in policy.critic.q_net.named_parameters()}
-        self.q_params = {k: v.view(n, c, *v.shape[1:]) for k, v in self.q_members.items()}
+        self.q_params = {k: v.detach() for k, v in policy.critic.task_parameters().items()}
         self.ent_coef = ent_coef.detach()
 
     def theta(self) -> Params:
@@ -83,15 +80,17 @@ class TaskObjectives:
         mean, log_std = split_mean_log_std(functional_call(self.policy.encoder, encoder_params, (self.batch.obs,)))
         return gaussian_sample(mean, log_std, self.batch.z_noise), mean, log_std
 
-    def _single(self, theta: Params, q_params: Params, state: th.Tensor, z: th.Tensor, noise: th.Tensor, beta):
+    def _single(self, theta: Params, q_params: Params, obs: th.Tensor, z: th.Tensor, noise: th.Tensor, beta):
         """J_SAC of one task from its ``(L, ...)`` slice of the batch, through the actor's training forward pass."""
-        action, log_prob = functional_call(self.policy.actor, theta, (self.policy.actor_input(state, z), noise))
-        q_in = th.cat([state, action], dim=-1).expand(self.policy.n_critics, *state.shape[:-1], -1)
-        min_q = functional_call(self.policy.critic.q_net, q_params, (q_in,)).squeeze(-1).min(dim=0).values
+        policy = self.policy
+        action_input = policy.actor_input(obs[..., : policy.state_dim], z)
+        action, log_prob = functional_call(policy.actor, theta, (action_input, noise))
+        one_task = {k: v.unsqueeze(0) for k, v in q_params.items()}
+        min_q = policy.critic.forward_stacked(one_task, obs.unsqueeze(0), action.unsqueeze(0))[0].min(dim=0).values
         return sac_task_objective(log_prob.unsqueeze(0), min_q.unsqueeze(0), beta.unsqueeze(0)).squeeze(0)
 
     def _task_args(self, z: th.Tensor, tasks: th.Tensor | None):
-        args = (self.q_params, self.state, z, self.batch.action_noise, self.ent_coef)
+        args = (self.q_params, self.batch.obs, z, self.batch.action_noise, self.ent_coef)
         if tasks is None:
             return args
         q_params, *rest = args
@@ -114,37 +113,16 @@ class TaskObjectives:
         return th.cat([self._stacked_objectives(chunk, z) for chunk in chunks])
 
     def _stacked_objectives(self, thetas: Params, z: th.Tensor) -> th.Tensor:
-        """``(K, N)`` J_i(theta^k) as plain batched tensor code: the actor with its K weight sets on all N x L rows
-        (one batched matmul per layer), each task's twin critics on the K actions of its rows (one batched matmul
-        per layer over the N x n_critics members)."""
-        policy, (n, length) = self.policy, self.state.shape[:2]
-        rows = policy.actor_input(self.state, z).reshape(1, n * length, -1)
-        dist = stacked_sequential(policy.actor.net, thetas, rows, prefix="net.")
-        n_sets = dist.shape[0]
-        action, log_prob = squashed_gaussian(dist.view(n_sets, n, length, -1), self.batch.action_noise)
-        q_in = th.cat([self.state.expand(n_sets, *self.state.shape), action], dim=-1).transpose(0, 1)
-        q_in = q_in.reshape(n, 1, n_sets * length, -1).expand(n, policy.n_critics, -1, -1).flatten(0, 1)
-        q = functional_call(policy.critic.q_net, self.q_members, (q_in,)).view(n, policy.n_critics, n_sets, length)
+        """``(K, N)`` J_i(theta^k) in batched passes: the actor with its K parameter sets on all N x L rows, then
+        each task's critics on the K actions of its rows."""
+        policy, obs, (n, length) = self.policy, self.batch.obs, self.state.shape[:2]
+        action_input = policy.actor_input(self.state, z)
+        action, log_prob = policy.actor.forward_stacked(thetas, action_input, self.batch.action_noise)
+        n_sets = action.shape[0]
+        obs_rows = obs.unsqueeze(1).expand(n, n_sets, length, -1).reshape(n, n_sets * length, -1)
+        action_rows = action.transpose(0, 1).reshape(n, n_sets * length, -1)
+        q = policy.critic.forward_stacked(self.q_params, obs_rows, action_rows).view(n, -1, n_sets, length)
         return sac_task_objective(log_prob, q.min(dim=1).values.transpose(0, 1), self.ent_coef)
-
-
-def stacked_sequential(network: nn.Sequential, params: Params, x: th.Tensor, prefix: str = "") -> th.Tensor:
-    """``network`` (linear layers and parameter-free modules) applied with K stacked parameter sets at once.
-
-    :param network: the module whose layout the parameters follow.
-    :param params: ``{prefix + "<index>.weight": (K, out, in), prefix + "<index>.bias": (K, out)}``.
-    :param x: ``(K, B, in)``, or ``(1, B, in)`` for the same rows under every set.
-    :return: ``(K, B, out)``.
-    """
-    for index, module in enumerate(network):
-        if isinstance(module, nn.Linear):
-            weight, bias = params[f"{prefix}{index}.weight"], params[f"{prefix}{index}.bias"]
-            x = th.baddbmm(bias.unsqueeze(1), x.expand(weight.shape[0], *x.shape[1:]), weight.transpose(1, 2))
-        elif not any(True for _ in module.parameters()):
-            x = module(x)
-        else:
-            raise TypeError(f"stacked_sequential supports linear layers and parameter-free modules, got {module}.")
-    return x
 
 
 def virtual_parameters(theta: Params, grads: Params, step_size: float) -> Params:
