@@ -23,7 +23,7 @@ SHOWN = (
     "init_0.01_c_vae_1e-4",
     "mean_gain_50",
 )
-LABELS = {"init_0.01_c_vae_1e-4": " (previous defaults)", "mean_gain_50": " (defaults now: std 0.01, c_vae 1e-4)"}
+LABELS = {"init_0.01_c_vae_1e-4": " (previous defaults)", "mean_gain_50": " (Meta-World setting now: std 0.01, c_vae 1e-4)"}
 
 
 def main() -> None:
