@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import inspect
 import json
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -241,6 +242,43 @@ def test_record_video_one_file_per_task(trained_run, tmp_path):
     videos = sorted(p.name for p in tmp_path.glob("*.mp4"))
     assert len(videos) == 5 and any("03_conflict" in v for v in videos) and any("all_tasks" in v for v in videos)
     assert all((tmp_path / v).stat().st_size > 1000 for v in videos)
+
+
+class ZeroActions:
+    """A model that always predicts the zero action (frames depend on the env alone)."""
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return np.zeros((len(obs), 4), dtype=np.float32), None
+
+
+def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
+    """Two Meta-World tasks of different scenes rendered in one run give the frames each gives rendered alone
+    (before, every task drew with the OpenGL context created last: another task's meshes)."""
+    from argparse import Namespace
+
+    from sb3_mtte.envs import make_mt_env
+    from sb3_mtte.experiments.playback import _collect_frames
+
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    tasks = ["door-open-v3", "drawer-close-v3"]
+    kwargs = dict(render_mode="rgb_array", width=32, height=32, max_episode_steps=10)
+    args = Namespace(episodes=1, n_timesteps=3, flip=False, tile=False, stochastic=False)
+    alone = [[] for _ in tasks]
+    for i, frames_alone in enumerate(alone):
+        env = make_mt_env(tasks, seed=0, **kwargs)  # task i's sub-env is the only one that renders
+        env.env_method("set_eval_mode", True)  # as record_video does
+        obs = env.reset()
+        for _ in range(args.n_timesteps):
+            frames_alone.append(env.envs[i].render())
+            obs, *_ = env.step(ZeroActions().predict(obs)[0])
+        env.close()
+    env = make_mt_env(tasks, seed=0, **kwargs)
+    try:
+        frames, _ = _collect_frames(ZeroActions(), env, args)
+    finally:
+        env.close()
+    for i, task in enumerate(tasks):
+        np.testing.assert_array_equal(np.stack(frames[i]), np.stack(alone[i]), err_msg=task)
 
 
 # ================================================================================================ optuna
