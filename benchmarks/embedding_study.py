@@ -2,7 +2,7 @@
 
 One run per call: MTSACTE (or SAC-MT with ``--setting sac_mt``) on ``--benchmark`` (default ``DEV6``, six
 Meta-World tasks outside MT10 and MT20 in three pairs that share a scene) with the paper's Meta-World settings
-(the ``MT10`` entry of ``zoo_configs/mtsacte.yml``: 2 x 400 nets, L = 128, M = N // 2, K = 30, H = 500, ...) and
+(the ``MT10`` entry of ``sb3_mtte/zoo_configs/mtsacte.yml``: 2 x 400 nets, L = 128, M = N // 2, K = 30, H = 500, ...) and
 one setting of :data:`GRID` on top. Records the held-out linear probe of the task from sampled z (what the policy
 sees), from E_phi's mean, and E_phi's standard deviation at every J^rep update (thinned to one per
 ``--probe-every`` vector steps), the wall time per vector step, and, with ``--eval-episodes``, the final

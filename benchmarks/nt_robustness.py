@@ -1,7 +1,7 @@
 """How often mu singles out the conflicting task of toy-conflict, for each ``nt_measure`` of MTSACTE.
 
 For each seed and each measure (``per_batch``: the paper; ``mean`` and ``significant``: over an iteration's batches),
-trains MTSACTE on ``toy-conflict`` with its zoo settings (``zoo_configs/mtsacte.yml``) and records mu and w after
+trains MTSACTE on ``toy-conflict`` with its zoo settings (``sb3_mtte/zoo_configs/mtsacte.yml``) and records mu and w after
 every iteration's J^rep steps (the values that weight the policy during the iteration). Reports, per measure, the
 fraction of iterations in which the conflicting task (the last one) has the strictly largest mu (over the whole run
 and over its first quarter), its mean weight, the final success (10 episodes per task) and the env steps until the
@@ -32,7 +32,7 @@ LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_fr
 
 def toy_settings() -> tuple[int, dict[str, Any]]:
     """Budget and MTSACTE arguments of the ``toy-conflict`` entry of the zoo config."""
-    path = Path(__file__).resolve().parents[1] / "zoo_configs" / "mtsacte.yml"
+    path = Path(__file__).resolve().parents[1] / "sb3_mtte" / "zoo_configs" / "mtsacte.yml"
     entry = dict(yaml.safe_load(path.read_text())[BENCHMARK])
     budget = int(entry["n_timesteps"])
     kwargs = {key: value for key, value in entry.items() if key not in LAUNCHER_KEYS}

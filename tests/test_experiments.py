@@ -37,6 +37,23 @@ def test_composed_hyperparameters_equal_the_former_per_variant_files():
         assert zoo_hyperparameters(algo) == entries, algo
 
 
+def test_family_files_are_package_data_read_from_any_folder(tmp_path, monkeypatch):
+    """The family files ship inside the package (a wheel installs them) and are found from any working folder."""
+    import sb3_mtte
+    from sb3_mtte.experiments.configs import find_config_dir
+
+    package_dir = Path(sb3_mtte.__file__).resolve().parent
+    monkeypatch.chdir(tmp_path)
+    config_dir = find_config_dir().resolve()
+    assert config_dir.parent == package_dir
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    shipped = config["options.package_data"]["sb3_mtte"].split()
+    families = sorted(path.relative_to(package_dir) for path in config_dir.glob("*.yml"))
+    assert families and all(any(path.match(pattern) for pattern in shipped) for path in families)
+    assert zoo_hyperparameters("mtsac_mh")[ENV]["policy"] == "MultiHeadPolicy"
+
+
 def test_registry_gives_keys_labels_and_order():
     assert set(algo_classes()) == {"mtsac", *VARIANTS}
     assert variant_labels()[:6] == ["SAC-Ind", "SAC-MT", "SAC-MT-MH", "SAC-soft-modular", "SAC-MT-with-clip", "Ours"]

@@ -1,7 +1,7 @@
 """The algorithm variants: one entry per row of the paper's Table 1 and Fig. 7, and everything known about it.
 
 A variant is a zoo key (``--algo``), its algorithm family (class and base hyperparameter file
-``zoo_configs/<family>.yml``), its policy, the hyperparameters that make it this variant, its name in figures and
+``sb3_mtte/zoo_configs/<family>.yml``), its policy, the hyperparameters that make it this variant, its name in figures and
 tables, and the paper's numbers. Zoo keys, labels, the order of Table 1, the benchmark's variants and the
 hyperparameters of each key come from :data:`VARIANTS`. Adding a variant is one call::
 
@@ -53,7 +53,7 @@ def convert_trial_params(params: dict[str, Any]) -> dict[str, Any]:
 
 @dataclass(frozen=True)
 class Family:
-    """An algorithm family: a class and its base hyperparameter file ``zoo_configs/<key>.yml``.
+    """An algorithm family: a class and its base hyperparameter file ``sb3_mtte/zoo_configs/<key>.yml``.
 
     :param key: zoo key of the family (the base hyperparameters, used as they are) and name of its file.
     :param algorithm: the algorithm class.
