@@ -282,7 +282,19 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
 
 
 # ================================================================================================ optuna
-def test_optuna_search_runs_through_the_zoo(tmp_path):
+def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeypatch):
+    """A trial's value is the mean success over tasks of Meta-World's protocol (here a stand-in evaluation that
+    scores 0.625 with the run's episodes per task), not rl-zoo's mean return."""
+    from sb3_mtte.common.evaluation import SuccessResult
+    from sb3_mtte.experiments import callbacks
+
+    calls = []
+
+    def stand_in(model, env, episodes_per_task, deterministic):
+        calls.append(episodes_per_task)
+        return SuccessResult(get_task_names(env), np.array([1.0, 0.5, 0.5, 0.5]), episodes_per_task=episodes_per_task)
+
+    monkeypatch.setattr(callbacks, "evaluate_success", stand_in)
     main(
         [
             "train",
@@ -309,4 +321,7 @@ def test_optuna_search_runs_through_the_zoo(tmp_path):
             *TINY,
         ]
     )
-    assert list((tmp_path / "mtsac_mt").glob("report_*.csv"))
+    (report,) = (tmp_path / "mtsac_mt").glob("report_*.csv")
+    with open(report) as file:
+        (trial,) = csv.DictReader(file)
+    assert calls == [1] and float(trial["value"]) == 0.625

@@ -1,4 +1,5 @@
-"""Callbacks and wrappers of the launcher: resumable checkpoints, evaluation with ``best_model.zip``, episode report."""
+"""Callbacks and wrappers of the launcher: resumable checkpoints, evaluation with ``best_model.zip``, the score of
+an optuna trial, episode report."""
 
 from __future__ import annotations
 
@@ -8,10 +9,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rl_zoo3.callbacks import TrialEvalCallback
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.utils import get_task_names
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import Checkpoint, atomic_save, checkpoint_paths, find_checkpoints, restart_envs
@@ -182,3 +184,18 @@ class ZooEvalCallback(MultiTaskEvalCallback):
             )
         else:
             path.unlink()
+
+
+class SuccessTrialEvalCallback(TrialEvalCallback):
+    """rl-zoo's optuna trial callback scoring by the mean success over tasks (Meta-World's protocol,
+    ``n_eval_episodes`` per task) instead of the mean return; rl-zoo reports and returns ``last_mean_reward``."""
+
+    def _on_step(self) -> bool:
+        if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0:
+            return True
+        result = evaluate_success(self.model, self.eval_env, self.n_eval_episodes, self.deterministic)
+        self.last_mean_reward = result.mean
+        self.eval_idx += 1
+        self.trial.report(self.last_mean_reward, self.eval_idx)
+        self.is_pruned = self.trial.should_prune()
+        return not self.is_pruned
