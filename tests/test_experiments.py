@@ -97,7 +97,7 @@ def test_console_script_is_declared_and_dispatches(capsys):
     config = configparser.ConfigParser()
     config.read(ROOT / "setup.cfg")
     scripts = config["options.entry_points"]["console_scripts"].strip()
-    assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:main"
+    assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:console_main"
     assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "record", "plot", "sweep"}
     for command in cli.COMMANDS:
         with pytest.raises(SystemExit) as exit_info:
@@ -106,6 +106,19 @@ def test_console_script_is_declared_and_dispatches(capsys):
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["unknown"])
     assert exit_info.value.code == 2 and "sb3-mtte" in capsys.readouterr().out
+
+
+def test_console_script_exits_0_after_a_command_that_returns_a_value(monkeypatch):
+    """The script's wrapper runs ``sys.exit(<entry point>())``: a returned dict would exit 1 and print itself."""
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    module, function = config["options.entry_points"]["console_scripts"].split("=")[1].strip().split(":")
+    monkeypatch.setitem(cli.COMMANDS, "evaluate", lambda argv: {"mean": 0.5})
+    monkeypatch.setattr("sys.argv", ["sb3-mtte", "evaluate", "model.zip"])
+    entry_point = getattr(__import__(module, fromlist=[function]), function)
+    with pytest.raises(SystemExit) as exit_info:
+        raise SystemExit(entry_point())
+    assert exit_info.value.code is None
 
 
 @pytest.fixture(scope="module")
