@@ -233,6 +233,16 @@ def test_enjoy(trained_run, capsys):
     main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--no-render", "-n", "110"])
     out = capsys.readouterr().out
     assert "task  3 conflict" in out and "Success rate per task" in out
+    assert out.count("Loading latest experiment") == 1
+    assert "No episode finished" not in out
+
+
+def test_enjoy_shorter_than_an_episode_reports_the_unfinished_ones(trained_run, capsys):
+    folder = str(trained_run.parent.parent)
+    main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--no-render", "-n", "7"])
+    out = capsys.readouterr().out
+    assert "No episode finished for 4 task(s) (pass a larger -n)" in out and "Success rate per task" not in out
+    assert "task  3 conflict" in out and "length    7  success so far" in out
 
 
 def test_record_video_one_file_per_task(trained_run, tmp_path):

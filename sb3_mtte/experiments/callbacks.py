@@ -20,26 +20,33 @@ from sb3_mtte.experiments.checkpoints import Checkpoint, atomic_save, checkpoint
 
 
 class EpisodeReporter(VecEnvWrapper):
-    """Print every finished episode (task, return, success) and, on close, the success rate of each task."""
+    """Print every finished episode (task, return, success) and, on close, the success rate of each task; a task
+    with no finished episode gets its unfinished one (return, length and success so far)."""
 
     def __init__(self, venv: VecEnv) -> None:
         super().__init__(venv)
         self.task_names = get_task_names(venv)
         self.successes: list[list[bool]] = [[] for _ in range(venv.num_envs)]
+        self.returns = np.zeros(venv.num_envs)
+        self.lengths = np.zeros(venv.num_envs, dtype=int)
+        self.success_so_far = np.zeros(venv.num_envs, dtype=bool)
 
     def reset(self) -> Any:
         return self.venv.reset()
 
     def step_wait(self) -> Any:
         obs, rewards, dones, infos = self.venv.step_wait()
+        self.returns += rewards
+        self.lengths += 1
+        self.success_so_far = np.array([bool(info.get("is_success", False)) for info in infos])
         for i in np.flatnonzero(dones):
-            success = bool(infos[i].get("is_success", False))
-            self.successes[i].append(success)
+            self.successes[i].append(bool(self.success_so_far[i]))
             episode = infos[i].get("episode", {})
             print(
                 f"task {i:2d} {self.task_names[i]:<28} return {episode.get('r', float('nan')):9.2f}  "
-                f"length {episode.get('l', '-')!s:>4}  success {success}"
+                f"length {episode.get('l', '-')!s:>4}  success {self.success_so_far[i]}"
             )
+            self.returns[i], self.lengths[i] = 0.0, 0
         return obs, rewards, dones, infos
 
     def close(self) -> None:
@@ -48,6 +55,14 @@ class EpisodeReporter(VecEnvWrapper):
             for name, results in zip(self.task_names, self.successes):
                 if results:
                     print(f"  {name:<28} {100 * np.mean(results):5.1f}% ({len(results)})")
+        unfinished = [i for i, results in enumerate(self.successes) if not results and self.lengths[i] > 0]
+        if unfinished:
+            print(f"No episode finished for {len(unfinished)} task(s) (pass a larger -n); the unfinished episodes:")
+            for i in unfinished:
+                print(
+                    f"  task {i:2d} {self.task_names[i]:<28} return {self.returns[i]:9.2f}  "
+                    f"length {self.lengths[i]:>4}  success so far {self.success_so_far[i]}"
+                )
         self.venv.close()
 
 
