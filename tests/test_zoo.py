@@ -222,6 +222,23 @@ def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
         assert list(data["timesteps"]) == [200, 400]
 
 
+def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
+    """Every evaluation at 0 success: best_model.zip is the model of the last evaluation, not of the first."""
+    from sb3_mtte.common import evaluation
+    from sb3_mtte.envs import make_mt_env
+    from sb3_mtte.experiments.callbacks import ZooEvalCallback
+
+    def no_success(model, env, episodes_per_task, deterministic):
+        return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
+
+    monkeypatch.setattr(evaluation, "evaluate_success", no_success)
+    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, seed=0)
+    callback = ZooEvalCallback(make_mt_env(ENV), eval_freq=25, best_model_save_path=tmp_path)
+    model.learn(300, callback=callback)
+    assert callback.evaluations_timesteps == [100, 200, 300]
+    assert MTSAC.load(tmp_path / "best_model.zip").num_timesteps == 300
+
+
 # ================================================================================================ enjoy, video
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):

@@ -163,7 +163,11 @@ class MultiTaskCheckpointCallback(BaseCallback):
 
 
 class ZooEvalCallback(MultiTaskEvalCallback):
-    """:class:`MultiTaskEvalCallback` that also saves ``best_model.zip`` (highest mean success) like rl-zoo's."""
+    """:class:`MultiTaskEvalCallback` that also saves ``best_model.zip`` (highest mean success) like rl-zoo's.
+
+    A tie goes to the later model (as much success, more training): while every evaluation scores 0,
+    ``best_model.zip`` is the latest evaluated model, not the one of the first evaluation.
+    """
 
     def __init__(self, *args: Any, best_model_save_path: str | os.PathLike | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -172,7 +176,7 @@ class ZooEvalCallback(MultiTaskEvalCallback):
 
     def evaluate(self) -> SuccessResult:
         result = super().evaluate()
-        if result.mean > self.best_mean_success:
+        if result.mean >= self.best_mean_success:
             self.best_mean_success = result.mean
             if self.best_model_save_path is not None:
                 atomic_save(self.model.save, Path(self.best_model_save_path) / "best_model.zip")
