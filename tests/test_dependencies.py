@@ -6,8 +6,8 @@ import configparser
 import os
 import subprocess
 import sys
-from pathlib import Path
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
+from pathlib import Path
 
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
@@ -86,10 +86,8 @@ def import_as_on_a_plain_install(
         f"for name in {modules!r}: importlib.import_module(name)\n"
         f"{then}\n"
     )
-    env_path = {"PYTHONPATH": str(ROOT)} if cwd is not None else {}
-    return subprocess.run(
-        [sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=cwd, env={**os.environ, **env_path}
-    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package from any working folder
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=cwd, env=env)
 
 
 def test_command_imports_need_only_declared_dependencies():

@@ -288,7 +288,7 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
 
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
     tasks = ["door-open-v3", "drawer-close-v3"]
-    kwargs = dict(render_mode="rgb_array", width=32, height=32, max_episode_steps=10)
+    kwargs = {"render_mode": "rgb_array", "width": 32, "height": 32, "max_episode_steps": 10}
     args = Namespace(episodes=1, n_timesteps=3, flip=False, tile=False, stochastic=False)
     alone = [[] for _ in tasks]
     for i, frames_alone in enumerate(alone):
