@@ -32,7 +32,7 @@ LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_fr
 
 def toy_settings() -> tuple[int, dict[str, Any]]:
     """Budget and MTSACTE arguments of the ``toy-conflict`` entry of the zoo config."""
-    path = Path(__file__).resolve().parents[1] / "zoo_configs" / "mtsacte.yml"
+    path = Path(__file__).resolve().parents[1] / "sb3_mtte" / "zoo_configs" / "mtsacte.yml"
     entry = dict(yaml.safe_load(path.read_text())[BENCHMARK])
     budget = int(entry["n_timesteps"])
     kwargs = {key: value for key, value in entry.items() if key not in LAUNCHER_KEYS}

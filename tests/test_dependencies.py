@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import configparser
+import os
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
@@ -10,6 +11,8 @@ from pathlib import Path
 
 from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
+
+ROOT = Path(__file__).resolve().parent.parent
 
 # What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.record`, `sb3_mtte.plot` and the `sb3-mtte`
 # command import when they run (the `[ray]` extra of `sweep` is imported only when a sweep runs).
@@ -31,11 +34,10 @@ COMMAND_MODULES = [
 
 
 def declared_requirements() -> list[str]:
-    """``install_requires`` of this tree's setup.cfg (an editable install's metadata may predate it)."""
-    config = configparser.ConfigParser()
-    config.read(Path(__file__).resolve().parent.parent / "setup.cfg")
-    lines = (line.split("#")[0].strip() for line in config["options"]["install_requires"].splitlines())
-    return [line for line in lines if line]
+    """``install_requires`` of this checkout's setup.cfg (the installed metadata may predate it)."""
+    config = configparser.ConfigParser(inline_comment_prefixes=("#",))
+    config.read(ROOT / "setup.cfg")
+    return [line.strip() for line in config["options"]["install_requires"].splitlines() if line.strip()]
 
 
 def requirement_closure(name: str) -> set[str]:
@@ -69,9 +71,11 @@ def undeclared_modules() -> list[str]:
     )
 
 
-def import_as_on_a_plain_install(modules: list[str], blocked: list[str]) -> subprocess.CompletedProcess:
+def import_as_on_a_plain_install(
+    modules: list[str], blocked: list[str], then: str = "", cwd: Path | None = None
+) -> subprocess.CompletedProcess:
     """Import ``modules`` in a fresh interpreter where the ``blocked`` top-level modules cannot be found, as after
-    ``pip install -e .`` alone (optional imports guarded by try/except still pass)."""
+    ``pip install -e .`` alone (optional imports guarded by try/except still pass), then run the code ``then``."""
     code = (
         "import importlib, sys\n"
         f"BLOCKED = set({blocked!r})\n"
@@ -81,13 +85,26 @@ def import_as_on_a_plain_install(modules: list[str], blocked: list[str]) -> subp
         "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
         "sys.meta_path.insert(0, Blocker())\n"
         f"for name in {modules!r}: importlib.import_module(name)\n"
+        f"{then}\n"
     )
-    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False)
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package from any working folder
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=cwd, env=env)
 
 
 def test_command_imports_need_only_declared_dependencies():
     result = import_as_on_a_plain_install(COMMAND_MODULES, undeclared_modules())
     assert result.returncode == 0, f"a command needs an undeclared dependency:\n{result.stderr[-2000:]}"
+
+
+def test_optuna_search_needs_only_declared_dependencies(tmp_path):
+    """``-optimize`` (rl-zoo's optuna search, whose report is a pandas table) runs on a plain install."""
+    argv = ["train", "--algo", "mtsac_mt", "--env", "toy-conflict", "-f", "logs", "-optimize", "--n-trials", "1"]
+    argv += ["-n", "200", "--n-evaluations", "1", "--eval-episodes", "1", "--no-optim-plots", "--verbose", "0"]
+    argv += ["--sampler", "random", "--pruner", "none", "--no-progress", "--seed", "3"]
+    run = f"from sb3_mtte.experiments.cli import main\nmain({argv!r})"
+    result = import_as_on_a_plain_install(["sb3_mtte"], undeclared_modules(), then=run, cwd=tmp_path)
+    assert result.returncode == 0, f"-optimize needs an undeclared dependency:\n{result.stderr[-2000:]}"
+    assert list((tmp_path / "logs" / "mtsac_mt").glob("report_*.csv"))
 
 
 def test_a_missing_dependency_is_caught():

@@ -37,6 +37,28 @@ def test_composed_hyperparameters_equal_the_former_per_variant_files():
         assert zoo_hyperparameters(algo) == entries, algo
 
 
+def test_family_files_are_package_data_read_from_any_folder(tmp_path, monkeypatch):
+    """zoo_configs/ ships inside the package as sb3_mtte.zoo_configs (a wheel installs it), every subpackage of
+    sb3_mtte is listed in setup.cfg's packages, and the family files are found from any working folder."""
+    import sb3_mtte
+    from sb3_mtte.experiments.configs import find_config_dir
+
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    listed = config["options"]["packages"].split()
+    package_dir = Path(sb3_mtte.__file__).resolve().parent
+    subpackages = {f"sb3_mtte.{init.parent.name}" for init in package_dir.glob("*/__init__.py")}
+    assert set(listed) == {"sb3_mtte", "sb3_mtte.zoo_configs", *subpackages}
+    assert config["options"]["package_dir"].split() == ["sb3_mtte.zoo_configs", "=", "zoo_configs"]
+    shipped = config["options.package_data"]["sb3_mtte.zoo_configs"].split()
+    monkeypatch.chdir(tmp_path)
+    config_dir = find_config_dir().resolve()
+    assert config_dir == ROOT / "zoo_configs"
+    families = sorted(Path(path.name) for path in config_dir.glob("*.yml"))
+    assert families and all(any(path.match(pattern) for pattern in shipped) for path in families)
+    assert zoo_hyperparameters("mtsac_mh")[ENV]["policy"] == "MultiHeadPolicy"
+
+
 def test_registry_gives_keys_labels_and_order():
     assert set(algo_classes()) == {"mtsac", *VARIANTS}
     assert variant_labels()[:6] == ["SAC-Ind", "SAC-MT", "SAC-MT-MH", "SAC-soft-modular", "SAC-MT-with-clip", "Ours"]
@@ -80,7 +102,7 @@ def test_console_script_is_declared_and_dispatches(capsys):
     config = configparser.ConfigParser()
     config.read(ROOT / "setup.cfg")
     scripts = config["options.entry_points"]["console_scripts"].strip()
-    assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:main"
+    assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:console_main"
     assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "record", "plot", "sweep"}
     for command in cli.COMMANDS:
         with pytest.raises(SystemExit) as exit_info:
@@ -89,6 +111,19 @@ def test_console_script_is_declared_and_dispatches(capsys):
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["unknown"])
     assert exit_info.value.code == 2 and "sb3-mtte" in capsys.readouterr().out
+
+
+def test_console_script_exits_0_after_a_command_that_returns_a_value(monkeypatch):
+    """The script's wrapper runs ``sys.exit(<entry point>())``: a returned dict would exit 1 and print itself."""
+    config = configparser.ConfigParser()
+    config.read(ROOT / "setup.cfg")
+    module, function = config["options.entry_points"]["console_scripts"].split("=")[1].strip().split(":")
+    monkeypatch.setitem(cli.COMMANDS, "evaluate", lambda argv: {"mean": 0.5})
+    monkeypatch.setattr("sys.argv", ["sb3-mtte", "evaluate", "model.zip"])
+    entry_point = getattr(__import__(module, fromlist=[function]), function)
+    with pytest.raises(SystemExit) as exit_info:
+        raise SystemExit(entry_point())
+    assert exit_info.value.code is None
 
 
 @pytest.fixture(scope="module")

@@ -257,6 +257,18 @@ def test_logs_per_task_success_and_critic_loss(tmp_path):
     assert "rollout/success_rate" in header and "train/ent_coef" in header
 
 
+def test_logs_are_dumped_once_per_step_when_several_sub_envs_end_together(tmp_path):
+    """The 4 sub-envs end their episodes at the same step: with log_interval=1 SB3 would dump 4 tables there."""
+    from stable_baselines3.common.logger import configure
+
+    model = small_model()
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    lines = (tmp_path / "progress.csv").read_text().splitlines()
+    steps = [row.split(",")[lines[0].split(",").index("time/total_timesteps")] for row in lines[1:]]
+    assert len(steps) >= 2 and len(steps) == len(set(steps)), steps
+
+
 # ------------------------------------------------------------------------------------------------ learning
 @pytest.mark.parametrize(
     "policy, critic_arch",

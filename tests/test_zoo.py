@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import inspect
 import json
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -221,6 +222,23 @@ def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
         assert list(data["timesteps"]) == [200, 400]
 
 
+def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
+    """Every evaluation at 0 success: best_model.zip is the model of the last evaluation, not of the first."""
+    from sb3_mtte.common import evaluation
+    from sb3_mtte.envs import make_mt_env
+    from sb3_mtte.experiments.callbacks import ZooEvalCallback
+
+    def no_success(model, env, episodes_per_task, deterministic):
+        return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
+
+    monkeypatch.setattr(evaluation, "evaluate_success", no_success)
+    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, seed=0)
+    callback = ZooEvalCallback(make_mt_env(ENV), eval_freq=25, best_model_save_path=tmp_path)
+    model.learn(300, callback=callback)
+    assert callback.evaluations_timesteps == [100, 200, 300]
+    assert MTSAC.load(tmp_path / "best_model.zip").num_timesteps == 300
+
+
 # ================================================================================================ enjoy, video
 @pytest.fixture(scope="module")
 def trained_run(tmp_path_factory):
@@ -232,6 +250,16 @@ def test_enjoy(trained_run, capsys):
     main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--no-render", "-n", "110"])
     out = capsys.readouterr().out
     assert "task  3 conflict" in out and "Success rate per task" in out
+    assert out.count("Loading latest experiment") == 1
+    assert "No episode finished" not in out
+
+
+def test_enjoy_shorter_than_an_episode_reports_the_unfinished_ones(trained_run, capsys):
+    folder = str(trained_run.parent.parent)
+    main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--no-render", "-n", "7"])
+    out = capsys.readouterr().out
+    assert "No episode finished for 4 task(s) (pass a larger -n)" in out and "Success rate per task" not in out
+    assert "task  3 conflict" in out and "length    7  success so far" in out
 
 
 def test_record_video_one_file_per_task(trained_run, tmp_path):
@@ -243,8 +271,57 @@ def test_record_video_one_file_per_task(trained_run, tmp_path):
     assert all((tmp_path / v).stat().st_size > 1000 for v in videos)
 
 
+class ZeroActions:
+    """A model that always predicts the zero action (frames depend on the env alone)."""
+
+    def predict(self, obs: np.ndarray, deterministic: bool = True) -> tuple[np.ndarray, None]:
+        return np.zeros((len(obs), 4), dtype=np.float32), None
+
+
+def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
+    """Two Meta-World tasks of different scenes rendered in one run give the frames each gives rendered alone
+    (before, every task drew with the OpenGL context created last: another task's meshes)."""
+    from argparse import Namespace
+
+    from sb3_mtte.envs import make_mt_env
+    from sb3_mtte.experiments.playback import _collect_frames
+
+    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
+    tasks = ["door-open-v3", "drawer-close-v3"]
+    kwargs = {"render_mode": "rgb_array", "width": 32, "height": 32, "max_episode_steps": 10}
+    args = Namespace(episodes=1, n_timesteps=3, flip=False, tile=False, stochastic=False)
+    alone = [[] for _ in tasks]
+    for i, frames_alone in enumerate(alone):
+        env = make_mt_env(tasks, seed=0, **kwargs)  # task i's sub-env is the only one that renders
+        env.env_method("set_eval_mode", True)  # as record_video does
+        obs = env.reset()
+        for _ in range(args.n_timesteps):
+            frames_alone.append(env.envs[i].render())
+            obs, *_ = env.step(ZeroActions().predict(obs)[0])
+        env.close()
+    env = make_mt_env(tasks, seed=0, **kwargs)
+    try:
+        frames, _ = _collect_frames(ZeroActions(), env, args)
+    finally:
+        env.close()
+    for i, task in enumerate(tasks):
+        np.testing.assert_array_equal(np.stack(frames[i]), np.stack(alone[i]), err_msg=task)
+
+
 # ================================================================================================ optuna
-def test_optuna_search_runs_through_the_zoo(tmp_path):
+def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeypatch):
+    """A trial's value is the mean success over tasks of Meta-World's protocol (here a stand-in evaluation that
+    scores 0.625 with the run's episodes per task), not rl-zoo's mean return."""
+    from sb3_mtte.common.evaluation import SuccessResult
+    from sb3_mtte.experiments import callbacks
+
+    calls = []
+
+    def stand_in(model, env, episodes_per_task, deterministic):
+        calls.append(episodes_per_task)
+        return SuccessResult(get_task_names(env), np.array([1.0, 0.5, 0.5, 0.5]), episodes_per_task=episodes_per_task)
+
+    monkeypatch.setattr(callbacks, "evaluate_success", stand_in)
     main(
         [
             "train",
@@ -271,4 +348,7 @@ def test_optuna_search_runs_through_the_zoo(tmp_path):
             *TINY,
         ]
     )
-    assert list((tmp_path / "mtsac_mt").glob("report_*.csv"))
+    (report,) = (tmp_path / "mtsac_mt").glob("report_*.csv")
+    with open(report) as file:
+        (trial,) = csv.DictReader(file)
+    assert calls == [1] and float(trial["value"]) == 0.625

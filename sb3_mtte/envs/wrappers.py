@@ -149,6 +149,18 @@ class MultiTaskWrapper(gym.Wrapper):
             terminated = True
         return self._observation(state), float(reward), bool(terminated), bool(truncated), info
 
+    def render(self) -> Any:
+        """The env's frame, drawn in its own OpenGL context.
+
+        Gymnasium's ``MujocoRenderer`` makes its context current only when it holds several viewers; with one env
+        per task in a process, every task would otherwise draw with the context created last (another task's
+        meshes and buffers).
+        """
+        viewer = getattr(getattr(self.env.unwrapped, "mujoco_renderer", None), "viewer", None)
+        if viewer is not None:
+            viewer.make_context_current()
+        return self.env.render()
+
 
 def _single_goal(index: int) -> None:
     """Goal setter of an env without goal variations."""

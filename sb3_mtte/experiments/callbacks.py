@@ -1,4 +1,5 @@
-"""Callbacks and wrappers of the launcher: resumable checkpoints, evaluation with ``best_model.zip``, episode report."""
+"""Callbacks and wrappers of the launcher: resumable checkpoints, evaluation with ``best_model.zip``, the score of
+an optuna trial, episode report."""
 
 from __future__ import annotations
 
@@ -8,36 +9,44 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from rl_zoo3.callbacks import TrialEvalCallback
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.utils import get_task_names
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import Checkpoint, atomic_save, checkpoint_paths, find_checkpoints, restart_envs
 
 
 class EpisodeReporter(VecEnvWrapper):
-    """Print every finished episode (task, return, success) and, on close, the success rate of each task."""
+    """Print every finished episode (task, return, success) and, on close, the success rate of each task; a task
+    with no finished episode gets its unfinished one (return, length and success so far)."""
 
     def __init__(self, venv: VecEnv) -> None:
         super().__init__(venv)
         self.task_names = get_task_names(venv)
         self.successes: list[list[bool]] = [[] for _ in range(venv.num_envs)]
+        self.returns = np.zeros(venv.num_envs)
+        self.lengths = np.zeros(venv.num_envs, dtype=int)
+        self.success_so_far = np.zeros(venv.num_envs, dtype=bool)
 
     def reset(self) -> Any:
         return self.venv.reset()
 
     def step_wait(self) -> Any:
         obs, rewards, dones, infos = self.venv.step_wait()
+        self.returns += rewards
+        self.lengths += 1
+        self.success_so_far = np.array([bool(info.get("is_success", False)) for info in infos])
         for i in np.flatnonzero(dones):
-            success = bool(infos[i].get("is_success", False))
-            self.successes[i].append(success)
+            self.successes[i].append(bool(self.success_so_far[i]))
             episode = infos[i].get("episode", {})
             print(
                 f"task {i:2d} {self.task_names[i]:<28} return {episode.get('r', float('nan')):9.2f}  "
-                f"length {episode.get('l', '-')!s:>4}  success {success}"
+                f"length {episode.get('l', '-')!s:>4}  success {self.success_so_far[i]}"
             )
+            self.returns[i], self.lengths[i] = 0.0, 0
         return obs, rewards, dones, infos
 
     def close(self) -> None:
@@ -46,6 +55,14 @@ class EpisodeReporter(VecEnvWrapper):
             for name, results in zip(self.task_names, self.successes):
                 if results:
                     print(f"  {name:<28} {100 * np.mean(results):5.1f}% ({len(results)})")
+        unfinished = [i for i, results in enumerate(self.successes) if not results and self.lengths[i] > 0]
+        if unfinished:
+            print(f"No episode finished for {len(unfinished)} task(s) (pass a larger -n); the unfinished episodes:")
+            for i in unfinished:
+                print(
+                    f"  task {i:2d} {self.task_names[i]:<28} return {self.returns[i]:9.2f}  "
+                    f"length {self.lengths[i]:>4}  success so far {self.success_so_far[i]}"
+                )
         self.venv.close()
 
 
@@ -146,7 +163,11 @@ class MultiTaskCheckpointCallback(BaseCallback):
 
 
 class ZooEvalCallback(MultiTaskEvalCallback):
-    """:class:`MultiTaskEvalCallback` that also saves ``best_model.zip`` (highest mean success) like rl-zoo's."""
+    """:class:`MultiTaskEvalCallback` that also saves ``best_model.zip`` (highest mean success) like rl-zoo's.
+
+    A tie goes to the later model (as much success, more training): while every evaluation scores 0,
+    ``best_model.zip`` is the latest evaluated model, not the one of the first evaluation.
+    """
 
     def __init__(self, *args: Any, best_model_save_path: str | os.PathLike | None = None, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
@@ -155,7 +176,7 @@ class ZooEvalCallback(MultiTaskEvalCallback):
 
     def evaluate(self) -> SuccessResult:
         result = super().evaluate()
-        if result.mean > self.best_mean_success:
+        if result.mean >= self.best_mean_success:
             self.best_mean_success = result.mean
             if self.best_model_save_path is not None:
                 atomic_save(self.model.save, Path(self.best_model_save_path) / "best_model.zip")
@@ -182,3 +203,18 @@ class ZooEvalCallback(MultiTaskEvalCallback):
             )
         else:
             path.unlink()
+
+
+class SuccessTrialEvalCallback(TrialEvalCallback):
+    """rl-zoo's optuna trial callback scoring by the mean success over tasks (Meta-World's protocol,
+    ``n_eval_episodes`` per task) instead of the mean return; rl-zoo reports and returns ``last_mean_reward``."""
+
+    def _on_step(self) -> bool:
+        if self.eval_freq <= 0 or self.n_calls % self.eval_freq != 0:
+            return True
+        result = evaluate_success(self.model, self.eval_env, self.n_eval_episodes, self.deterministic)
+        self.last_mean_reward = result.mean
+        self.eval_idx += 1
+        self.trial.report(self.last_mean_reward, self.eval_idx)
+        self.is_pruned = self.trial.should_prune()
+        return not self.is_pruned

@@ -78,9 +78,15 @@ def main(argv: Sequence[str] | None = None) -> Any:
     return run_command(COMMANDS, "sb3-mtte", argv)
 
 
+def console_main() -> None:
+    """The ``sb3-mtte`` console script: :func:`main` with exit status 0 on success (the script's wrapper exits with
+    the returned value, and a command's return value is for callers in Python)."""
+    main()
+
+
 def zoo_main(argv: Sequence[str] | None = None) -> Any:
     """``python -m sb3_mtte.zoo {train,enjoy,record_video} ...``"""
     return run_command(ZOO_COMMANDS, "python -m sb3_mtte.zoo", argv)
 
 
-__all__ = ["COMMANDS", "ZOO_COMMANDS", "main", "zoo_main"]
+__all__ = ["COMMANDS", "ZOO_COMMANDS", "console_main", "main", "zoo_main"]

@@ -7,6 +7,7 @@ once per algorithm family; a variant's entries are the family's with the variant
 
 from __future__ import annotations
 
+from importlib import resources
 from pathlib import Path
 from typing import Any
 
@@ -17,21 +18,18 @@ from sb3_mtte.experiments.variants import FAMILIES, VARIANTS
 CONFIG_DIR_NAME = "zoo_configs"
 
 
-def find_config_dir() -> Path | None:
-    """``zoo_configs/`` of the current directory, else of the source checkout holding this package."""
-    for base in (Path.cwd(), Path(__file__).resolve().parents[2]):
-        if (base / CONFIG_DIR_NAME).is_dir():
-            return base / CONFIG_DIR_NAME
-    return None
+def find_config_dir() -> Path:
+    """``zoo_configs/``, shipped inside the package as ``sb3_mtte.zoo_configs`` (setup.cfg's ``package_dir``): the
+    checkout's folder in an editable install, the installed copy from a wheel."""
+    return Path(str(resources.files(f"sb3_mtte.{CONFIG_DIR_NAME}")))
 
 
 def family_config_path(algo: str) -> Path | None:
     """The family file of a zoo key (``zoo_configs/mtsac.yml`` for ``mtsac_mh``), or None when not found."""
     family = VARIANTS[algo].family if algo in VARIANTS else algo
-    directory = find_config_dir()
-    if family not in FAMILIES or directory is None:
+    if family not in FAMILIES:
         return None
-    path = directory / f"{family}.yml"
+    path = find_config_dir() / f"{family}.yml"
     return path if path.is_file() else None
 
 

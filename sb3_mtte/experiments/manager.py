@@ -14,7 +14,10 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from unittest import mock
 
+import optuna
+import rl_zoo3.exp_manager
 import yaml
 from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
@@ -24,7 +27,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, ZooEvalCallback
+from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
 from sb3_mtte.experiments.configs import family_config_path
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
@@ -286,6 +289,11 @@ class MultiTaskExperimentManager(ExperimentManager):
         run_info.write_run_info(self.save_path, info)
 
     # ---- training
+    def objective(self, trial: optuna.Trial) -> float:
+        """rl-zoo's optuna trial (``-optimize``), scored by the mean success over tasks, not the mean return."""
+        with mock.patch.object(rl_zoo3.exp_manager, "TrialEvalCallback", SuccessTrialEvalCallback):
+            return super().objective(trial)
+
     def learn(self, model: BaseAlgorithm) -> None:
         step = self.resume_step
         tb_dir = None

@@ -14,7 +14,7 @@ import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
-from rl_zoo3.utils import StoreDict, get_model_path
+from rl_zoo3.utils import StoreDict, get_latest_run_id, get_model_path
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.vec_env import VecEnv
 from stable_baselines3.common.vec_env.base_vec_env import tile_images
@@ -76,7 +76,12 @@ def enjoy(argv: Sequence[str]) -> None:
         raise SystemExit(f"{env_id} has {n_tasks} tasks: --n-envs must be {n_tasks} (one sub-env per task).")
     if n_envs is None:
         argv += ["--n-envs", str(n_tasks)]
-    _, _, log_path = locate_model(_model_parser("enjoy").parse_known_args(argv)[0])
+    args = _model_parser("enjoy").parse_known_args(argv)[0]
+    if args.exp_id == 0:  # resolved here, so that rl-zoo's enjoy does not report it a second time
+        args.exp_id = get_latest_run_id(os.path.join(args.folder, args.algo), EnvironmentName(env_id))
+        print(f"Loading latest experiment, id={args.exp_id}")
+        argv += ["--exp-id", str(args.exp_id)]
+    _, _, log_path = locate_model(args)
     info = run_info.read_run_info(log_path) or {}
     factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), report_episodes=True)
     _run_zoo_enjoy(argv, factory)

@@ -312,7 +312,8 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
-        return [*super()._excluded_save_params(), "actor", "critic", "critic_target", "_task_success"]
+        excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps"]
+        return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]

@@ -20,6 +20,7 @@ class PerTaskLogMixin:
     n_tasks: int
     task_names: list[str]
     _task_success: list[deque]
+    num_timesteps: int
 
     def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
@@ -44,6 +45,11 @@ class PerTaskLogMixin:
                 self._task_success[infos[index].get("task_index", index)].append(float(success))
 
     def dump_logs(self) -> None:
+        """SB3's log dump, once per step: SB3 calls it for every finished episode that reaches a multiple of
+        ``log_interval``, so several sub-envs ending at one step would print the same table two or three times."""
+        if getattr(self, "_last_dump_timesteps", None) == self.num_timesteps:
+            return
+        self._last_dump_timesteps = self.num_timesteps
         for i, successes in enumerate(getattr(self, "_task_success", [])):
             if successes:
                 self.logger.record(task_log_key("rollout/success", i, self._task_name(i)), float(np.mean(successes)))
