@@ -8,7 +8,8 @@ from test_mtsac import all_params
 
 from sb3_mtte import MTSAC, make_mt_env
 from sb3_mtte.common.critics import MultiTaskCritic
-from sb3_mtte.experiments.results import table1
+from sb3_mtte.experiments.results import BenchmarkStatistics, table1
+from sb3_mtte.experiments.statistics import Estimate
 from sb3_mtte.experiments.variants import paper_sources, paper_table1
 from sb3_mtte.mtsac.moore import MooreNetwork, gram_schmidt
 from sb3_mtte.mtsac.paco import PaCoNetwork
@@ -331,14 +332,20 @@ def test_bad_input_raises_a_clear_error(policy, kwargs, match):
             small_model(policy, **kwargs)
 
 
-def test_table1_shows_every_published_number_and_source_of_the_registry():
-    """The reference table beside a results table lists each registered variant's published numbers, and each
-    source that is not the paper's Table 1 under its label, as the registry holds them."""
-    text = table1({"MT10": {}, "MT20": {}})
+@pytest.mark.parametrize("benchmark", ["MT10-cpu", "MT20-cpu"])
+def test_table1_shows_every_published_number_and_source_of_the_registry(benchmark):
+    """Table 1 of a benchmark lists, beside each algorithm with runs, its published number on that benchmark family
+    as the registry holds it, and the source of every number that is not the paper's Table 1."""
     published = paper_table1()
     assert {"MOORE", "PaCo", "PCGrad", "CAGrad"} <= set(paper_sources()) <= set(published)
+    scores = {label: np.full((2, 3), 0.5) for label in published}
+    estimate = Estimate(0.5, 0.4, 0.6)
+    aggregates = {label: {"mean": estimate, "iqm": estimate} for label in scores}
+    text = table1(benchmark, BenchmarkStatistics(scores, aggregates, None, {}), reps=5)
+    family = benchmark.split("-")[0]
     for label, values in published.items():
-        cells = " | ".join(f"{values[b]:.1f}%" if b in values else "-" for b in ("MT10", "MT20"))
-        assert f"| {label} | {cells} |" in text, label
+        cell = f"{values[family]:.1f}" if family in values else "-"
+        assert f"| {label} | 2 | 50.0 [40.0, 60.0] | 50.0 [40.0, 60.0] | {cell} |" in text, label
     for label, source in paper_sources().items():
-        assert f"- {label}: {source}." in text, label
+        if family in published[label]:
+            assert f" {label}: {source}." in text, label
