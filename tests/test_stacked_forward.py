@@ -73,10 +73,10 @@ def policy_with(replace_actor, seed: int):
 @pytest.mark.parametrize("actor", list(ACTORS))
 def test_other_actor_architectures_give_the_plain_loops_transfer_matrix_and_mu(actor):
     policy = policy_with(ACTORS[actor], seed=1)
-    batch, ent_coef = make_rep_batch(policy, seed=106), make_ent_coef(N_TASKS)
+    batch, ent_coef = make_rep_batch(policy, seed=111), make_ent_coef(N_TASKS)
     before, expected = loop_transfer(policy, batch, ent_coef, STEP)
     expected_mu = [sum(1 for i in range(N_TASKS) if float(expected[k, i]) < 0) for k in range(N_TASKS)]
-    assert expected.abs().min() > 1e-5 and expected_mu == [1, 2, 2, 3]  # every sign clear, mu not uniform
+    assert expected.abs().min() > 1e-4 and expected_mu == [1, 1, 1, 3]  # every sign clear, mu not uniform
 
     for chunk_size in (None, 1, 3):
         objectives = TaskObjectives(policy, batch, ent_coef, chunk_size=chunk_size)

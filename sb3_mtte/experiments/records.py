@@ -132,14 +132,19 @@ def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -
 def _read_json(path: Path) -> Any:
     try:
         return json.loads(path.read_text())
-    except json.JSONDecodeError as error:
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise SystemExit(f"{path} is not valid JSON ({error}): fix or remove it") from None
 
 
 def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
-    """Every record (``*.json`` holding a ``record_version``) under ``folder``, with its path, sorted by path."""
+    """Every record (``*.json`` holding a ``record_version``) under ``folder``, with its path, sorted by path.
+
+    Folders whose name starts with ``_`` or ``.`` (Ray's ``_ray`` state of a sweep, hidden folders) are not read."""
     records = []
-    for path in sorted(Path(folder).rglob("*.json")):
+    root = Path(folder)
+    for path in sorted(root.rglob("*.json")):
+        if any(part.startswith(("_", ".")) for part in path.relative_to(root).parts[:-1]):
+            continue
         data = _read_json(path)
         if isinstance(data, dict) and "record_version" in data:
             if data["record_version"] > RECORD_VERSION:
