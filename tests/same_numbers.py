@@ -70,8 +70,12 @@ def parameter_digest(model: Any) -> str:
 
 
 def case_digest(name: str) -> str:
+    threads = th.get_num_threads()
     th.set_num_threads(1)
-    return parameter_digest(train_case(name))
+    try:
+        return parameter_digest(train_case(name))
+    finally:
+        th.set_num_threads(threads)
 
 
 if __name__ == "__main__":
