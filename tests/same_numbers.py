@@ -49,7 +49,13 @@ def train_case(name: str) -> Any:
     kwargs = {"policy_kwargs": SMALL, **kwargs}
     env = make_mt_env("toy-conflict", seed=0)
     model = algorithm(
-        policy, env, learning_starts=4 * START, batch_size=16, buffer_size=4 * VECTOR_STEPS, seed=0, device="cpu",
+        policy,
+        env,
+        learning_starts=4 * START,
+        batch_size=16,
+        buffer_size=4 * VECTOR_STEPS,
+        seed=0,
+        device="cpu",
         **kwargs,
     )
     model.learn(4 * VECTOR_STEPS)

@@ -360,7 +360,9 @@ def test_cagrad_c_comes_from_the_registry_entry_of_the_benchmark_and_reaches_the
     for env_key, entry in zoo_hyperparameters("mtsac_cagrad").items():
         matches = [c for pattern, c in CAGRAD_C.items() if fnmatch.fnmatchcase(env_key, pattern)]
         assert len(matches) == 1 and entry["cagrad_c"] == matches[0], env_key
-    variant = dataclasses.replace(VARIANTS["mtsac_cagrad"], env_overrides={"toy-*": {"cagrad_c": 0.37}})
+    registered = VARIANTS["mtsac_cagrad"]
+    build = dataclasses.replace(registered.build, env_overrides={"toy-*": {"cagrad_c": 0.37}})
+    variant = dataclasses.replace(registered, build=build)
     monkeypatch.setitem(VARIANTS, "mtsac_cagrad", variant)
     run = tiny_train(tmp_path, "mtsac_cagrad", "-params", "learning_starts:100", steps=200)
     model = MTSAC.load(run / f"{ENV}.zip")

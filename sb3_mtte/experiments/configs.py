@@ -12,7 +12,7 @@ from typing import Any
 
 import yaml
 
-from sb3_mtte.experiments.variants import FAMILIES, VARIANTS
+from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, family_of
 
 CONFIG_DIR_NAME = "zoo_configs"
 
@@ -27,11 +27,10 @@ def find_config_dir() -> Path | None:
 
 def family_config_path(algo: str) -> Path | None:
     """The family file of a zoo key (``zoo_configs/mtsac.yml`` for ``mtsac_mh``), or None when not found."""
-    family = VARIANTS[algo].family if algo in VARIANTS else algo
-    directory = find_config_dir()
-    if family not in FAMILIES or directory is None:
+    family, directory = family_of(algo), find_config_dir()
+    if family is None or directory is None:
         return None
-    path = directory / f"{family}.yml"
+    path = directory / f"{family.config_name}.yml"
     return path if path.is_file() else None
 
 
@@ -40,7 +39,7 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
 
     :raises FileNotFoundError: when the family's file is missing.
     """
-    if algo not in VARIANTS and algo not in FAMILIES:
+    if family_of(algo) is None:
         return None
     path = family_config_path(algo)
     if path is None:
@@ -48,7 +47,7 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
     base = yaml.safe_load(path.read_text())
     if algo in FAMILIES:
         return base
-    return {env_key: VARIANTS[algo].compose(env_key, entry) for env_key, entry in base.items()}
+    return {env_key: VARIANTS[algo].build.compose(env_key, entry) for env_key, entry in base.items()}
 
 
 __all__ = ["CONFIG_DIR_NAME", "family_config_path", "find_config_dir", "zoo_hyperparameters"]
