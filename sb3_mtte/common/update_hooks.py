@@ -9,7 +9,7 @@ An update (:meth:`sb3_mtte.MTSAC._sac_update`) asks its algorithm's :class:`Upda
 4. :meth:`~UpdateHook.after_update`, once the optimizers have stepped.
 
 A hook does one of these things; :class:`UpdateHooks` runs several as one (masks multiply, the last hook that
-sets weights sets them, at most one combines gradients). The algorithm's hooks come from
+gives weights gives them, at most one combines gradients). The algorithm's hooks come from
 :meth:`sb3_mtte.MTSAC.update_hooks` (gradient surgery from ``gradient_surgery``, MTSACTE's weights) followed by its
 policy's :meth:`~sb3_mtte.common.policies.MultiTaskPolicy.update_hooks` (PaCo's mask and reset).
 """
@@ -29,8 +29,6 @@ class UpdateHook:
 
     combines_gradients: bool = False
     """Whether :meth:`combine_gradients` replaces the gradient of ``sum_i w_i L_i`` for the shared parameters."""
-    sets_weights: bool = False
-    """Whether :meth:`task_weights` sets the actor's weights (else they are uniform)."""
 
     def attach(self, model: Any) -> None:
         """Called once the algorithm's networks exist (and again after ``load``)."""
@@ -62,7 +60,6 @@ class UpdateHooks(UpdateHook):
             raise ValueError(f"At most one update hook may combine the task gradients, got {names}.")
         self.combining = combining[0] if combining else None
         self.combines_gradients = self.combining is not None
-        self.sets_weights = any(hook.sets_weights for hook in self.hooks)
 
     def attach(self, model: Any) -> None:
         for hook in self.hooks:
@@ -75,11 +72,8 @@ class UpdateHooks(UpdateHook):
         return mask
 
     def task_weights(self) -> th.Tensor | None:
-        weights = None
-        for hook in self.hooks:
-            if hook.sets_weights:
-                weights = hook.task_weights()
-        return weights
+        weights = [hook.task_weights() for hook in self.hooks]
+        return next((w for w in reversed(weights) if w is not None), None)
 
     def combine_gradients(self, task_gradients: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
         if self.combining is None:
@@ -109,8 +103,6 @@ class GradientSurgery(UpdateHook):
 
 class NegativeTransferWeights(UpdateHook):
     """MTSACTE's actor weights: w of Eq. 8 from the model's last recomputation (``model.task_weights``)."""
-
-    sets_weights = True
 
     def attach(self, model: Any) -> None:
         self.model = model
