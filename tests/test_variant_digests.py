@@ -1,12 +1,12 @@
 """Every existing algorithm gives the parameters, bit for bit, that the digests in ``tests/data`` were written with
-(:mod:`same_numbers`: a short seeded run on toy-conflict, CPU, one thread)."""
+(:mod:`variant_digests`: a short seeded run on toy-conflict, CPU, one thread)."""
 
 from __future__ import annotations
 
 import json
 
 import pytest
-from same_numbers import CASES, DIGESTS, case_digest
+from variant_digests import CASES, DIGESTS, case_digest
 
 
 @pytest.mark.parametrize("case", list(CASES))

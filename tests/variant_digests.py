@@ -1,9 +1,9 @@
 """Digests of every parameter after a short seeded run of each existing algorithm on toy-conflict.
 
-``tests/data/same_numbers.json`` holds the digests of the code they were written with; a refactoring of the update
+``tests/data/variant_digests.json`` holds the digests of the code they were written with; a refactoring of the update
 that keeps them keeps every algorithm's numbers bit for bit. Write them from a checkout with::
 
-    PYTHONPATH=<checkout> python tests/same_numbers.py --write
+    PYTHONPATH=<checkout> python tests/variant_digests.py --write
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch as th
 
 from sb3_mtte import MTSAC, MTSACTE, make_mt_env
 
-DIGESTS = Path(__file__).resolve().parent / "data" / "same_numbers.json"
+DIGESTS = Path(__file__).resolve().parent / "data" / "variant_digests.json"
 VECTOR_STEPS, START = 120, 40
 SMALL = {"net_arch": [32, 32]}
 _AUTHORS = {"critic_arch": "shared", "ent_coef_arch": "shared"}
