@@ -33,9 +33,9 @@ from sb3_mtte.experiments.variants import VARIANTS as REGISTERED_VARIANTS
 
 STATE_DIM, ACTION_DIM = 39, 4
 VARIANTS = {
-    f"MTSAC-{variant.label.removeprefix('SAC-')}": (variant.policy, dict(variant.overrides))
+    f"MTSAC-{variant.label.removeprefix('SAC-')}": (variant.build.policy, dict(variant.build.overrides))
     for variant in REGISTERED_VARIANTS.values()
-    if variant.algorithm is MTSAC
+    if variant.build.algorithm is MTSAC
 }
 """Label -> (policy, keyword arguments) of every MTSAC variant of the registry (default network sizes)."""
 VARIANTS["MTSAC-MT-shared-critic"] = ("MlpPolicy", {"critic_arch": "shared"})

@@ -17,6 +17,7 @@ from sb3_mtte.experiments.run_info import read_run_info
 from sb3_mtte.experiments.runs import label_order
 from sb3_mtte.experiments.variants import (
     VARIANTS,
+    Build,
     Variant,
     algo_classes,
     paper_table1,
@@ -65,9 +66,9 @@ def test_registry_gives_keys_labels_and_order():
     assert paper_table1()["Ours"] == {"MT10": 89.3, "MT20": 70.1}
     assert label_order(["zzz", "Ours", "SAC-MT"]) == ["SAC-MT", "Ours", "zzz"]
     with pytest.raises(ValueError, match="exists"):
-        register_variant(Variant("mtsac_mt", "SAC-MT", "mtsac"))
+        register_variant(Variant("mtsac_mt", "SAC-MT", Build("mtsac")))
     with pytest.raises(ValueError, match="Unknown family"):
-        register_variant(Variant("other", "Other", "no-family"))
+        register_variant(Variant("other", "Other", Build("no-family")))
 
 
 def test_user_config_file_is_read_as_in_rl_zoo(tmp_path):
@@ -81,7 +82,7 @@ def test_user_config_file_is_read_as_in_rl_zoo(tmp_path):
 
 def test_a_registered_variant_trains_evaluates_and_plots(tmp_path):
     """Adding a variant is one registration: zoo key, hyperparameters, label and order follow."""
-    variant = Variant("mtsac_probe", "SAC-MT-probe", "mtsac", "MultiHeadPolicy", overrides={"tau": 0.02})
+    variant = Variant("mtsac_probe", "SAC-MT-probe", Build("mtsac", "MultiHeadPolicy", overrides={"tau": 0.02}))
     register_variant(variant)
     try:
         assert zoo_hyperparameters("mtsac_probe")[ENV]["tau"] == 0.02

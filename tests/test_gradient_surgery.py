@@ -201,14 +201,14 @@ def test_per_task_gradients_of_rows_equal_a_loop_of_backward_passes():
 class RecordingMTSAC(MTSAC):
     """Records the per-task losses, the parameters and the gradients of every optimizer step it makes."""
 
-    def _surgery_step(self, optimizer, name, task_losses, task_weights, actor=False):
+    def _combined_step(self, optimizer, name, task_losses, task_weights, actor=False):
         params = [p for group in optimizer.param_groups for p in group["params"]]
         loop = [th.autograd.grad(task_losses[i], params, retain_graph=True) for i in range(self.n_tasks)]
         loop = np.stack([th.cat([g.flatten() for g in grads]).double().numpy() for grads in loop])
         rng_state = th.get_rng_state()
         before = [p.detach().clone() for p in params]
         self.fast_path = self.actor.kept_output is not None
-        result = super()._surgery_step(optimizer, name, task_losses, task_weights, actor)
+        result = super()._combined_step(optimizer, name, task_losses, task_weights, actor)
         grad = [p.grad.clone() for p in params]
         weights = task_weights.double().numpy()
         self.records[name] = {
@@ -360,7 +360,9 @@ def test_cagrad_c_comes_from_the_registry_entry_of_the_benchmark_and_reaches_the
     for env_key, entry in zoo_hyperparameters("mtsac_cagrad").items():
         matches = [c for pattern, c in CAGRAD_C.items() if fnmatch.fnmatchcase(env_key, pattern)]
         assert len(matches) == 1 and entry["cagrad_c"] == matches[0], env_key
-    variant = dataclasses.replace(VARIANTS["mtsac_cagrad"], env_overrides={"toy-*": {"cagrad_c": 0.37}})
+    registered = VARIANTS["mtsac_cagrad"]
+    build = dataclasses.replace(registered.build, env_overrides={"toy-*": {"cagrad_c": 0.37}})
+    variant = dataclasses.replace(registered, build=build)
     monkeypatch.setitem(VARIANTS, "mtsac_cagrad", variant)
     run = tiny_train(tmp_path, "mtsac_cagrad", "-params", "learning_starts:100", steps=200)
     model = MTSAC.load(run / f"{ENV}.zip")

@@ -168,11 +168,11 @@ def test_paco_forward_equals_a_loop_over_tasks_with_their_parameters():
 
 def test_paco_resets_exactly_the_tasks_above_the_threshold():
     model = small_model("PaCoPolicy", task_loss_threshold=10.0)
-    policy = model.policy
+    policy, hook = model.policy, model.update_hook
     before = all_params(model)
-    kept = policy.task_loss_mask(th.tensor([3.0, 12.0, 10.0, 1e6]))
+    kept = hook.loss_mask(th.tensor([3.0, 12.0, 10.0, 1e6]))
     assert kept.tolist() == [1.0, 0.0, 1.0, 0.0]  # a loss equal to the threshold is kept
-    policy.after_update()
+    hook.after_update()
     collapsed, after = th.tensor([False, True, False, True]), all_params(model)
     assert policy.collapse_counts.tolist() == [0, 1, 0, 1]
     for key, value in before.items():
@@ -195,8 +195,8 @@ def test_paco_resets_exactly_the_tasks_above_the_threshold():
         mix = th.linalg.lstsq(system, new[:, task].reshape(-1, 1)).solution.squeeze(1)
         assert th.allclose(system @ mix, new[:, task].reshape(-1), atol=1e-5)
         assert (mix >= -1e-5).all() and abs(float(mix.sum()) - 1) < 1e-5
-    assert policy.task_loss_mask(th.tensor([3.0, 2.0, 1.0, 0.0])).tolist() == [1.0] * 4
-    policy.after_update()
+    assert hook.loss_mask(th.tensor([3.0, 2.0, 1.0, 0.0])).tolist() == [1.0] * 4
+    hook.after_update()
     assert th.equal(all_params(model)["actor.net.task_weights"], after["actor.net.task_weights"])
 
 
@@ -246,14 +246,14 @@ def test_paco_update_with_one_collapsed_task_trains_the_others_and_resets_that_o
     tasks' losses (the collapsed one contributes nothing, the others everything), and only that task is reset."""
     model = small_model("PaCoPolicy", learning_starts=1000)
     model.learn(200)
-    policy, task_loss_mask = model.policy, model.policy.task_loss_mask
+    policy, loss_mask = model.policy, model.update_hook.loss_mask
 
     def threshold_below_the_largest_loss(task_losses: th.Tensor) -> th.Tensor:
         policy.task_loss_threshold = float(task_losses.topk(2).values.mean())
         model.collapsed = task_losses > policy.task_loss_threshold
-        return task_loss_mask(task_losses)
+        return loss_mask(task_losses)
 
-    policy.task_loss_mask = threshold_below_the_largest_loss
+    model.update_hook.loss_mask = threshold_below_the_largest_loss
     model.__class__, model.checked = MaskCheckingMTSAC, []
     before = all_params(model)
     model.train(1, 16)

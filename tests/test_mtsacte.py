@@ -39,7 +39,7 @@ def test_initial_negative_transfer_state(toy_env):
     assert model.n_select == N_TASKS // 2
     assert model.mu.tolist() == [0] * N_TASKS
     np.testing.assert_allclose(model.task_weights, np.full(N_TASKS, 1 / N_TASKS))
-    th.testing.assert_close(model.task_weights_for_policy(), th.full((N_TASKS,), 1 / N_TASKS))
+    th.testing.assert_close(model._actor_weights(), th.full((N_TASKS,), 1 / N_TASKS))
 
 
 def test_attributes_after_recomputation(toy_env):
@@ -59,7 +59,7 @@ def test_attributes_after_recomputation(toy_env):
         numerators = [math.exp(N_TASKS - m) for m in mu]
         np.testing.assert_allclose(model.task_weights, [v / sum(numerators) for v in numerators], rtol=1e-6)
         assert model.task_weights.dtype == th.float32
-        np.testing.assert_array_equal(model.task_weights_for_policy().numpy(), model.task_weights)
+        np.testing.assert_array_equal(model._actor_weights().numpy(), model.task_weights)
         seen_mu.add(tuple(mu))
     assert len(seen_mu) > 1  # not one constant answer
 
@@ -81,9 +81,9 @@ def test_representation_schedule(toy_env, monkeypatch):
         original_update(batch_size)
         calls.append((model.num_timesteps // N_TASKS, model.task_weights.clone()))
 
-    original_weights = model.task_weights_for_policy
+    original_weights = model._actor_weights
 
-    def task_weights_for_policy():
+    def actor_weights():
         weights = original_weights()
         train_weights.append((model.num_timesteps // N_TASKS, weights.clone()))
         return weights
@@ -101,7 +101,7 @@ def test_representation_schedule(toy_env, monkeypatch):
         return original_apply(*args)
 
     monkeypatch.setattr(model, "update_representation", update_representation)
-    monkeypatch.setattr(model, "task_weights_for_policy", task_weights_for_policy)
+    monkeypatch.setattr(model, "_actor_weights", actor_weights)
     monkeypatch.setattr(model, "_apply_gradients", counting_apply)
     monkeypatch.setattr(mtsacte_module, "transfer_matrix", counting_transfer)
     model.learn(total)

@@ -86,7 +86,7 @@ def test_model_task_weights_in_the_model_dtype(toy_env):
     model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
     model.learn(60 * N_TASKS)
     assert model.task_weights.dtype == th.float32
-    assert model.task_weights_for_policy().dtype == next(model.actor.parameters()).dtype
+    assert model._actor_weights().dtype == next(model.actor.parameters()).dtype
 
 
 # ================================================================== nt_measure (beyond the paper when not per_batch)

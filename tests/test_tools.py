@@ -65,7 +65,7 @@ def test_algo_labels():
     assert algo_label("mtsac", {"policy": "MultiHeadPolicy"}) == "SAC-MT-MH"
     assert algo_label("mtsac", {"policy": "MlpPolicy", "q_loss_clip": 2000}) == "SAC-MT-with-clip"
     assert algo_label("mtsacte", {"q_loss_clip": None}) == "Ours"  # the row key wins
-    assert algo_label("mtsacte_x", {"use_topk": False}) == "Ours-bestbatch"
+    assert algo_label("mtsacte_x", {"use_topk": False}) == "mtsacte_x"  # no family's key: no prefix matching
 
 
 # ================================================================================================ evaluate

@@ -18,6 +18,7 @@ from torch.func import functional_call, vmap
 
 from sb3_mtte.common.critics import MultiTaskCritic
 from sb3_mtte.common.distributions import squashed_gaussian, squashed_gaussian_action
+from sb3_mtte.common.update_hooks import UpdateHook
 from sb3_mtte.common.utils import task_ids_from_obs
 
 DEFAULT_NET_ARCH = [400, 400]
@@ -184,13 +185,9 @@ class MultiTaskPolicy(BasePolicy):
         """
         raise NotImplementedError
 
-    def task_loss_mask(self, task_losses: th.Tensor) -> th.Tensor:
-        """``(N,)`` factor of every task's losses in this update, from its ``(N,)`` critic losses (all ones here; a
-        policy that masks collapsed tasks, PaCo, overrides it)."""
-        return th.ones_like(task_losses)
-
-    def after_update(self) -> None:
-        """Called after every update's optimizer steps (PaCo resets the tasks it masked)."""
+    def update_hooks(self) -> list[UpdateHook]:
+        """The architecture's extensions of the update (:mod:`sb3_mtte.common.update_hooks`; PaCo's reset)."""
+        return []
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)

@@ -13,7 +13,7 @@ from typing import Any
 
 import yaml
 
-from sb3_mtte.experiments.variants import FAMILIES, VARIANTS
+from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, family_of
 
 CONFIG_DIR_NAME = "zoo_configs"
 
@@ -26,10 +26,10 @@ def find_config_dir() -> Path:
 
 def family_config_path(algo: str) -> Path | None:
     """The family file of a zoo key (``zoo_configs/mtsac.yml`` for ``mtsac_mh``), or None when not found."""
-    family = VARIANTS[algo].family if algo in VARIANTS else algo
-    if family not in FAMILIES:
+    family = family_of(algo)
+    if family is None:
         return None
-    path = find_config_dir() / f"{family}.yml"
+    path = find_config_dir() / f"{family.config_name}.yml"
     return path if path.is_file() else None
 
 
@@ -38,7 +38,7 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
 
     :raises FileNotFoundError: when the family's file is missing.
     """
-    if algo not in VARIANTS and algo not in FAMILIES:
+    if family_of(algo) is None:
         return None
     path = family_config_path(algo)
     if path is None:
@@ -46,7 +46,7 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
     base = yaml.safe_load(path.read_text())
     if algo in FAMILIES:
         return base
-    return {env_key: VARIANTS[algo].compose(env_key, entry) for env_key, entry in base.items()}
+    return {env_key: VARIANTS[algo].build.compose(env_key, entry) for env_key, entry in base.items()}
 
 
 __all__ = ["CONFIG_DIR_NAME", "family_config_path", "find_config_dir", "zoo_hyperparameters"]

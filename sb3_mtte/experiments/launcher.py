@@ -26,7 +26,7 @@ from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.configs import zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
-from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, algo_classes, convert_trial_params
+from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
 
 TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
     "eval_freq": ("--eval-freq",),
@@ -53,7 +53,8 @@ LAUNCHER_HELP = (
 def register_algos() -> None:
     """Add every zoo key to ``rl_zoo3.ALGOS`` and its optuna sampler to rl-zoo's tables (idempotent)."""
     for key, cls in algo_classes().items():
-        family = FAMILIES[VARIANTS[key].family if key in VARIANTS else key]
+        family = family_of(key)
+        assert family is not None
         rl_zoo3.ALGOS[key] = cls
         hyperparams_opt.HYPERPARAMS_SAMPLER[key] = family.sample_params
         hyperparams_opt.HYPERPARAMS_CONVERTER[key] = convert_trial_params

@@ -1,24 +1,40 @@
-"""The algorithm variants: one entry per row of the paper's Table 1 and Fig. 7, and everything known about it.
+"""The package's algorithm families and variants: one variant per row of the paper's Table 1 and Fig. 7.
 
-A variant is a zoo key (``--algo``), its algorithm family (class and base hyperparameter file
-``zoo_configs/<family>.yml``), its policy, the hyperparameters that make it this variant, its name in figures and
-tables, and the paper's numbers. Zoo keys, labels, the order of Table 1, the benchmark's variants and the
-hyperparameters of each key come from :data:`VARIANTS`. Adding a variant is one call::
+A variant is a zoo key (``--algo``), how to build it (:class:`~sb3_mtte.experiments.registry.Build`: its family's
+class and base hyperparameter file ``zoo_configs/<family>.yml``, its policy, the hyperparameters that make it this
+variant), its name in figures and tables, and the published numbers. Zoo keys, labels, the order of Table 1, the
+benchmark's variants and the hyperparameters of each key come from :data:`VARIANTS`. Adding a family, an
+architecture or a variant is one call each (:mod:`sb3_mtte.experiments.registry`)::
 
-    register_variant(Variant("mtsac_mh_tau", "SAC-MT-MH-tau", "mtsac", "MultiHeadPolicy", overrides={"tau": 0.02}))
-
-(plus its policy or algorithm class when it is new).
+    register_family(Family("mtsac_mine", MyMTSAC, sample_mtsac_params, config="mtsac"))
+    register_architecture("MyPolicy", MyPolicy, family="mtsac_mine")
+    register_variant(Variant("mine", "Mine", Build("mtsac_mine", "MyPolicy", overrides={"tau": 0.02})))
 """
 
 from __future__ import annotations
 
-import fnmatch
-from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
 from typing import Any
 
-from stable_baselines3.common.base_class import BaseAlgorithm
-
+from sb3_mtte.experiments.registry import (
+    FAMILIES,
+    VARIANTS,
+    Build,
+    Family,
+    Variant,
+    ablation_labels,
+    algo_classes,
+    family_of,
+    label_of,
+    paper_sources,
+    paper_table1,
+    register_architecture,
+    register_family,
+    register_variant,
+    unregister_architecture,
+    unregister_family,
+    unregister_variant,
+    variant_labels,
+)
 from sb3_mtte.mtsac import MTSAC
 from sb3_mtte.mtsacte import MTSACTE
 
@@ -51,67 +67,11 @@ def convert_trial_params(params: dict[str, Any]) -> dict[str, Any]:
     return kwargs
 
 
-@dataclass(frozen=True)
-class Family:
-    """An algorithm family: a class and its base hyperparameter file ``zoo_configs/<key>.yml``.
-
-    :param key: zoo key of the family (the base hyperparameters, used as they are) and name of its file.
-    :param algorithm: the algorithm class.
-    :param sample_params: optuna search space (rl-zoo's sampler signature).
-    """
-
-    key: str
-    algorithm: type[BaseAlgorithm]
-    sample_params: Callable[..., dict[str, Any]]
-
-
-FAMILIES: dict[str, Family] = {
-    "mtsac": Family("mtsac", MTSAC, sample_mtsac_params),
-    "mtsacte": Family("mtsacte", MTSACTE, sample_mtsacte_params),
-}
-"""Family key -> family."""
-
-
-@dataclass(frozen=True)
-class Variant:
-    """One algorithm variant.
-
-    :param key: zoo algorithm key (``--algo``).
-    :param label: its name in figures and tables (the paper's).
-    :param family: key of its family in :data:`FAMILIES`: its class and base hyperparameters.
-    :param policy: the policy (hyperparameter ``policy``).
-    :param overrides: hyperparameters that make it this variant, set in every env entry of the family's file.
-    :param env_overrides: further hyperparameters per env entry, keyed by a pattern of the entry (``"toy-*"``).
-    :param paper: published success rate (%) per benchmark: the paper's Table 1, or ``paper_source``'s.
-    :param paper_source: where ``paper`` comes from when it is not the paper's Table 1.
-    :param ablation_of: key of the variant it ablates (Fig. 7), if any.
-    """
-
-    key: str
-    label: str
-    family: str
-    policy: str = "MlpPolicy"
-    overrides: Mapping[str, Any] = field(default_factory=dict)
-    env_overrides: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    paper: Mapping[str, float] = field(default_factory=dict)
-    paper_source: str | None = None
-    ablation_of: str | None = None
-
-    @property
-    def algorithm(self) -> type[BaseAlgorithm]:
-        return FAMILIES[self.family].algorithm
-
-    def defining_hyperparams(self) -> dict[str, Any]:
-        """The hyperparameters that tell this variant from its family's base: policy and overrides."""
-        return {"policy": self.policy, **self.overrides}
-
-    def compose(self, env_key: str, base: Mapping[str, Any]) -> dict[str, Any]:
-        """Hyperparameters of this variant for one env entry: the family's entry plus the overrides."""
-        hyperparams = {**base, **self.defining_hyperparams()}
-        for pattern, values in self.env_overrides.items():
-            if fnmatch.fnmatchcase(env_key, pattern):
-                hyperparams.update(values)
-        return hyperparams
+for _family in (
+    Family("mtsac", MTSAC, sample_mtsac_params),
+    Family("mtsacte", MTSACTE, sample_mtsacte_params),
+):
+    register_family(_family)
 
 
 _CAGRAD_TABLE3 = (
@@ -147,154 +107,90 @@ _PACO = "dict(net_arch=[{0}, {0}], n_parameter_sets=5, task_loss_threshold=3000.
 METAWORLD_ENTRIES = ("MT*", "DEV6*")
 """Patterns of the Meta-World env entries of the hyperparameter files (the toy entries are ``toy-*``)."""
 
-VARIANTS: dict[str, Variant] = {}
-"""Zoo key -> variant, in the row order of Table 1 and then Fig. 7."""
-
-
-def register_variant(variant: Variant) -> Variant:
-    """Add a variant to :data:`VARIANTS` (zoo key, label, order, hyperparameters).
-
-    :raises ValueError: for a known key or label, or an unknown family.
-    """
-    if variant.family not in FAMILIES:
-        raise ValueError(f"Unknown family {variant.family!r} of {variant.key!r}: one of {sorted(FAMILIES)}.")
-    if variant.key in VARIANTS or variant.label in variant_labels():
-        raise ValueError(f"A variant with the key {variant.key!r} or the label {variant.label!r} exists.")
-    VARIANTS[variant.key] = variant
-    return variant
-
-
-def unregister_variant(key: str) -> Variant:
-    """Remove a variant from :data:`VARIANTS` and return it."""
-    return VARIANTS.pop(key)
-
-
-def algo_classes() -> dict[str, type[BaseAlgorithm]]:
-    """Zoo key -> algorithm class, for the families and every variant."""
-    classes = {key: family.algorithm for key, family in FAMILIES.items()}
-    classes.update({key: variant.algorithm for key, variant in VARIANTS.items()})
-    return classes
-
-
-def variant_labels() -> list[str]:
-    """Labels of the variants in the order of Table 1, then Fig. 7."""
-    return [variant.label for variant in VARIANTS.values()]
-
-
-def ablation_labels() -> list[str]:
-    """Fig. 7: the ablated variants' labels, each ablated one first (``["Ours", "Ours-VAE", ...]``)."""
-    labels: list[str] = []
-    for variant in VARIANTS.values():
-        if variant.ablation_of is not None:
-            base = VARIANTS[variant.ablation_of].label
-            labels += [label for label in (base, variant.label) if label not in labels]
-    return labels
-
-
-def paper_sources() -> dict[str, str]:
-    """Label -> source of its published numbers, for the variants whose numbers are not the paper's Table 1."""
-    return {variant.label: variant.paper_source for variant in VARIANTS.values() if variant.paper_source}
-
-
-def paper_table1() -> dict[str, dict[str, float]]:
-    """Published success (%): label -> benchmark -> success, for the variants with published numbers (the paper's
-    Table 1 on Meta-World v2, or :func:`paper_sources`)."""
-    return {variant.label: dict(variant.paper) for variant in VARIANTS.values() if variant.paper}
-
-
-def label_of(algo: str, hyperparams: Mapping[str, Any] | None = None) -> str:
-    """The name of a run from its zoo key, or, for another key of a family (``mtsac``, ``mtsac_x``), the name of
-    the family's variant its hyperparameters match (the one with the most overrides).
-
-    :param algo: zoo algorithm key (``"mtsacte"``, ``"mtsac_mh"``, ``"mtsac"``, ...).
-    :param hyperparams: the run's hyperparameters (used for keys that are no variant's).
-    """
-    if algo in VARIANTS:
-        return VARIANTS[algo].label
-    family = max((key for key in FAMILIES if algo.startswith(key)), key=len, default=None)
-    if family is None:
-        return algo
-    params = {"policy": "MlpPolicy", **(hyperparams or {})}
-    params["policy"] = str(params["policy"]).split(".")[-1]
-    matches = [
-        variant
-        for variant in VARIANTS.values()
-        if variant.family == family
-        and all(key in params and params[key] == value for key, value in variant.defining_hyperparams().items())
-    ]
-    if not matches:
-        return algo
-    return max(matches, key=lambda variant: len(variant.overrides)).label
-
-
 for _variant in (
-    Variant("mtsac_ind", "SAC-Ind", "mtsac", "IndependentPolicy", paper={"MT10": 94.0, "MT20": 94.1}),
-    Variant("mtsac_mt", "SAC-MT", "mtsac", paper={"MT10": 74.3, "MT20": 56.2}),
-    Variant("mtsac_mh", "SAC-MT-MH", "mtsac", "MultiHeadPolicy", paper={"MT10": 76.9, "MT20": 65.3}),
+    Variant("mtsac_ind", "SAC-Ind", Build("mtsac", "IndependentPolicy"), paper={"MT10": 94.0, "MT20": 94.1}),
+    Variant("mtsac_mt", "SAC-MT", Build("mtsac"), paper={"MT10": 74.3, "MT20": 56.2}),
+    Variant("mtsac_mh", "SAC-MT-MH", Build("mtsac", "MultiHeadPolicy"), paper={"MT10": 76.9, "MT20": 65.3}),
     Variant(
         "mtsac_softmod",
         "SAC-soft-modular",
-        "mtsac",
-        "SoftModularPolicy",
-        env_overrides={
-            **dict.fromkeys(
-                METAWORLD_ENTRIES, {"policy_kwargs": f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"}
-            ),
-            "toy-*": {"policy_kwargs": f"dict(net_arch=[64, 64], {_SOFT_MODULAR.format(2, 32)})"},
-        },
+        Build(
+            "mtsac",
+            "SoftModularPolicy",
+            env_overrides={
+                **dict.fromkeys(
+                    METAWORLD_ENTRIES, {"policy_kwargs": f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"}
+                ),
+                "toy-*": {"policy_kwargs": f"dict(net_arch=[64, 64], {_SOFT_MODULAR.format(2, 32)})"},
+            },
+        ),
         paper={"MT10": 83.3, "MT20": 65.0},
     ),
     Variant(
-        "mtsac_clip", "SAC-MT-with-clip", "mtsac", overrides={"q_loss_clip": 2000}, paper={"MT10": 85.9, "MT20": 65.5}
+        "mtsac_clip",
+        "SAC-MT-with-clip",
+        Build("mtsac", overrides={"q_loss_clip": 2000}),
+        paper={"MT10": 85.9, "MT20": 65.5},
     ),
-    Variant("mtsacte", "Ours", "mtsacte", paper={"MT10": 89.3, "MT20": 70.1}),
+    Variant("mtsacte", "Ours", Build("mtsacte"), paper={"MT10": 89.3, "MT20": 70.1}),
     # Gradient surgery as its authors ran it on Meta-World (no MT20 number is published), then on the actor alone.
     Variant(
         "mtsac_pcgrad",
         "PCGrad",
-        "mtsac",
-        overrides={"gradient_surgery": "pcgrad", **_SURGERY_AUTHORS},
+        Build("mtsac", overrides={"gradient_surgery": "pcgrad", **_SURGERY_AUTHORS}),
         paper={"MT10": 72.0},
         paper_source=_CAGRAD_TABLE3,
     ),
     Variant(
         "mtsac_cagrad",
         "CAGrad",
-        "mtsac",
-        overrides={"gradient_surgery": "cagrad", **_SURGERY_AUTHORS},
-        env_overrides={pattern: {"cagrad_c": c} for pattern, c in CAGRAD_C.items()},
+        Build(
+            "mtsac",
+            overrides={"gradient_surgery": "cagrad", **_SURGERY_AUTHORS},
+            env_overrides={pattern: {"cagrad_c": c} for pattern, c in CAGRAD_C.items()},
+        ),
         paper={"MT10": 83.0},
         paper_source=_CAGRAD_TABLE3,
     ),
-    Variant("mtsac_pcgrad_actor", "PCGrad-actor", "mtsac", overrides={"gradient_surgery": "pcgrad"}),
-    Variant("mtsac_cagrad_actor", "CAGrad-actor", "mtsac", overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5}),
+    Variant("mtsac_pcgrad_actor", "PCGrad-actor", Build("mtsac", overrides={"gradient_surgery": "pcgrad"})),
+    Variant(
+        "mtsac_cagrad_actor",
+        "CAGrad-actor",
+        Build("mtsac", overrides={"gradient_surgery": "cagrad", "cagrad_c": 0.5}),
+    ),
     Variant(
         "mtsac_moore",
         "MOORE",
-        "mtsac",
-        "MOOREPolicy",
-        env_overrides={
-            **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _MOORE.format(400)}),
-            "toy-*": {"policy_kwargs": _MOORE.format(64)},
-        },
+        Build(
+            "mtsac",
+            "MOOREPolicy",
+            env_overrides={
+                **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _MOORE.format(400)}),
+                "toy-*": {"policy_kwargs": _MOORE.format(64)},
+            },
+        ),
         paper={"MT10": 88.7},
         paper_source=_REPORTED.format("Hendawi et al. (ICLR 2024)", 83.2),
     ),
     Variant(
         "mtsac_paco",
         "PaCo",
-        "mtsac",
-        "PaCoPolicy",
-        env_overrides={
-            **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _PACO.format(400)}),
-            "toy-*": {"policy_kwargs": _PACO.format(64)},
-        },
+        Build(
+            "mtsac",
+            "PaCoPolicy",
+            env_overrides={
+                **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _PACO.format(400)}),
+                "toy-*": {"policy_kwargs": _PACO.format(64)},
+            },
+        ),
         paper={"MT10": 85.4},
         paper_source=_REPORTED.format("Sun et al. (NeurIPS 2022)", 73.6),
     ),
-    Variant("mtsacte_novae", "Ours-VAE", "mtsacte", overrides={"use_vae": False}, ablation_of="mtsacte"),
-    Variant("mtsacte_noclip", "Ours-clip", "mtsacte", overrides={"q_loss_clip": None}, ablation_of="mtsacte"),
-    Variant("mtsacte_nobestbatch", "Ours-bestbatch", "mtsacte", overrides={"use_topk": False}, ablation_of="mtsacte"),
+    Variant("mtsacte_novae", "Ours-VAE", Build("mtsacte", overrides={"use_vae": False}), ablation_of="mtsacte"),
+    Variant("mtsacte_noclip", "Ours-clip", Build("mtsacte", overrides={"q_loss_clip": None}), ablation_of="mtsacte"),
+    Variant(
+        "mtsacte_nobestbatch", "Ours-bestbatch", Build("mtsacte", overrides={"use_topk": False}), ablation_of="mtsacte"
+    ),
 ):
     register_variant(_variant)
 
@@ -303,14 +199,23 @@ __all__ = [
     "CAGRAD_C",
     "FAMILIES",
     "VARIANTS",
+    "Build",
     "Family",
     "Variant",
     "ablation_labels",
     "algo_classes",
+    "convert_trial_params",
+    "family_of",
     "label_of",
     "paper_sources",
     "paper_table1",
+    "register_architecture",
+    "register_family",
     "register_variant",
+    "sample_mtsac_params",
+    "sample_mtsacte_params",
+    "unregister_architecture",
+    "unregister_family",
     "unregister_variant",
     "variant_labels",
 ]

@@ -78,8 +78,8 @@ class EntropyCoefMixin:
         return th.full((self.n_tasks,), weight, device=self.device)
 
     def _entropy_coef_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
-        """Apply one update of the learned entropy coefficients from the per-task temperature losses; the hook a
-        gradient-level method overrides (PCGrad and CAGrad act on a shared beta).
+        """Apply one update of the learned entropy coefficients from the per-task temperature losses (a shared beta
+        follows the update hook's combination of the task gradients, e.g. PCGrad's or CAGrad's).
 
         :param task_losses: ``(N,)`` per-task temperature losses (with their graph).
         :param task_weights: ``(N,)`` weights of the tasks.

@@ -23,6 +23,7 @@ from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBuffer
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
 from sb3_mtte.common.gradient_surgery import check_gradient_surgery
 from sb3_mtte.common.losses import clipped_soft_q_loss, sac_task_objective
+from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
 from sb3_mtte.common.utils import (
     check_multitask_env,
     check_one_hot,
@@ -33,8 +34,8 @@ from sb3_mtte.mtsac.entropy import EntropyCoefMixin, check_ent_coef_arch
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
-from sb3_mtte.mtsac.surgery import GradientSurgeryMixin
 from sb3_mtte.mtsac.task_logs import PerTaskLogMixin
+from sb3_mtte.mtsac.task_steps import TaskStepMixin
 from sb3_mtte.openmp import warn_if_spinning
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
@@ -45,7 +46,7 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
         raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
 
 
-class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAlgorithm):
+class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
@@ -53,8 +54,10 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
     ``"MlpPolicy"``, the update is SB3's SAC update.
 
     Every update hands the ``(N,)`` per-task losses and weights of the entropy coefficients, the critic and the actor
-    to :meth:`_entropy_coef_step`, :meth:`_critic_step` and :meth:`_actor_step`, which minimise ``sum_i w_i L_i``; a
-    gradient-level multi-task method (PCGrad, CAGrad, ...) overrides one of them.
+    to :meth:`_entropy_coef_step`, :meth:`_critic_step` and :meth:`_actor_step`, which minimise ``sum_i w_i L_i``.
+    What else happens to the per-task losses and gradients (the actor's weights, a mask of tasks, a combination of
+    the task gradients, a reset after the update) is :attr:`update_hook`'s, built from :meth:`update_hooks` and the
+    policy's (:mod:`sb3_mtte.common.update_hooks`).
 
     :param policy: ``"MlpPolicy"`` (SAC-MT), ``"MultiHeadPolicy"`` (SAC-MT-MH), ``"SoftModularPolicy"``
         (SAC-soft-modular), ``"IndependentPolicy"`` (SAC-Ind), ``"MOOREPolicy"`` (MOORE) or ``"PaCoPolicy"`` (PaCo),
@@ -192,10 +195,21 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
         ).to(self.device)
         self._convert_train_freq()
         self._create_aliases()
-        self._setup_gradient_surgery()
+        self._setup_update_hook()
         if self.env is not None:
             self._setup_replay_buffer()
         self._setup_entropy_coef()
+
+    def update_hooks(self) -> list[UpdateHook]:
+        """The algorithm's extensions of the update (before the policy's): gradient surgery when set."""
+        if self.gradient_surgery is None:
+            return []
+        return [GradientSurgery(self.gradient_surgery, self.cagrad_c)]
+
+    def _setup_update_hook(self) -> None:
+        self.update_hook = UpdateHooks([*self.update_hooks(), *self.policy.update_hooks()])
+        self.update_hook.attach(self)
+        self._keep_actor_output()
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         """Policy arguments owned by the algorithm (not stored in ``policy_kwargs``)."""
@@ -243,10 +257,6 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
         self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
 
     # --------------------------------------------------------------------------------------------- training
-    def task_weights_for_policy(self) -> th.Tensor:
-        """Weights of the per-task policy losses (Eq. 9); uniform 1/N for plain MTSAC."""
-        return th.full((self.n_tasks,), 1.0 / self.n_tasks, device=self.device)
-
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
         self.policy.set_training_mode(True)
         optimizers = [self.actor.optimizer, self.critic.optimizer]
@@ -269,16 +279,23 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
         ent_coef, stats = self._entropy_step(log_prob)
         critic_losses = self._critic_losses(replay_data, ent_coef)
-        kept = self.policy.task_loss_mask(critic_losses.detach())
+        kept = self.update_hook.loss_mask(critic_losses.detach())
         self._critic_step(critic_losses, kept)
         stats["critic_loss"] = critic_losses.detach()
         self.critic.requires_grad_(False)  # constants of the actor loss: no gradient for them in its backward pass
         min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
         self.critic.requires_grad_(True)
         actor_losses = -sac_task_objective(log_prob, min_q_pi, ent_coef)
-        stats["actor_loss"] = self._actor_step(actor_losses, self.task_weights_for_policy() * kept).detach()
-        self.policy.after_update()
+        stats["actor_loss"] = self._actor_step(actor_losses, self._actor_weights() * kept).detach()
+        self.update_hook.after_update()
         return stats
+
+    def _actor_weights(self) -> th.Tensor:
+        """w of Eq. 9: the update hook's, else uniform 1/N."""
+        weights = self.update_hook.task_weights()
+        if weights is None:
+            return th.full((self.n_tasks,), 1.0 / self.n_tasks, device=self.device)
+        return weights
 
     def _critic_losses(self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor) -> th.Tensor:
         """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed."""
@@ -291,28 +308,27 @@ class MTSAC(EntropyCoefMixin, GradientSurgeryMixin, PerTaskLogMixin, OffPolicyAl
         return clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
 
     def _critic_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
-        """Apply one critic update from the per-task losses; the hook a gradient-level method overrides.
+        """Apply one critic update from the per-task losses.
 
         :param task_losses: ``(N,)`` per-task critic losses (with their graph).
-        :param task_weights: ``(N,)`` weights of the tasks (ones).
+        :param task_weights: ``(N,)`` weights of the tasks (the update hook's loss mask).
         :return: the loss that was minimised.
         """
         shared = self.critic_arch == "shared"
         return self._task_step(self.critic.optimizer, "critic loss", task_losses, task_weights, shared)
 
     def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
-        """Apply one actor update from the per-task losses -J_SAC,i; the hook a gradient-level method (PCGrad,
-        CAGrad, ...) overrides.
+        """Apply one actor update from the per-task losses -J_SAC,i.
 
         :param task_losses: ``(N,)`` per-task policy losses (with their graph).
-        :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`task_weights_for_policy`).
+        :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`_actor_weights`) times the loss mask.
         :return: the loss that was minimised.
         """
         return self._task_step(self.actor.optimizer, "actor loss", task_losses, task_weights, True, actor=True)
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
-        excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps"]
+        excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps", "update_hook"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:

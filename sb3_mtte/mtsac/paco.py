@@ -17,6 +17,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
+from sb3_mtte.common.update_hooks import CollapseReset, UpdateHook
 from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_weights_
 
 
@@ -119,9 +120,9 @@ class PaCoNetwork(nn.Module):
 class PaCoPolicy(TaskConditionedPolicy):
     """MTSAC policy whose actor and twin critics are PaCo networks, with the reset of collapsed tasks.
 
-    Every update, :meth:`task_loss_mask` marks the tasks whose critic loss exceeds ``task_loss_threshold``: they
-    take no part in that update, and :meth:`after_update` then resets their w in every PaCo network (actor,
-    critics and target critics) and counts the reset in ``collapse_counts``.
+    Every update, its :class:`~sb3_mtte.common.update_hooks.CollapseReset` hook marks the tasks whose critic loss
+    exceeds ``task_loss_threshold``: they take no part in that update, and :meth:`reset_task_weights` then resets
+    their w in every PaCo network (actor, critics and target critics) and counts the reset in ``collapse_counts``.
 
     :param observation_space: flat Box: state followed by the N-dim one-hot.
     :param action_space: Box action space.
@@ -147,24 +148,13 @@ class PaCoPolicy(TaskConditionedPolicy):
         self.n_parameter_sets, self.task_loss_threshold = n_parameter_sets, task_loss_threshold
         super().__init__(observation_space, action_space, lr_schedule, **kwargs)
         self.register_buffer("collapse_counts", th.zeros(self.n_tasks, dtype=th.long))
-        self._collapsed: th.Tensor | None = None
 
     def network_kwargs(self) -> dict[str, Any]:
         return {"n_parameter_sets": self.n_parameter_sets}
 
-    def task_loss_mask(self, task_losses: th.Tensor) -> th.Tensor:
-        """``(N,)`` 1 for the tasks that take part in this update, 0 for those above the threshold."""
-        if self.task_loss_threshold is None:
-            return th.ones_like(task_losses)
-        collapsed = task_losses > self.task_loss_threshold
-        self._collapsed = collapsed if bool(collapsed.any()) else None
-        return (~collapsed).to(task_losses.dtype)
-
-    def after_update(self) -> None:
-        """Reset the w of the tasks masked in this update."""
-        if self._collapsed is not None:
-            self.reset_task_weights(self._collapsed)
-            self._collapsed = None
+    def update_hooks(self) -> list[UpdateHook]:
+        """PaCo's mask of the tasks above ``task_loss_threshold`` and their reset after the update."""
+        return [CollapseReset(self)]
 
     @th.no_grad()
     def reset_task_weights(self, collapsed: th.Tensor) -> None:

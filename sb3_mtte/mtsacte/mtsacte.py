@@ -12,6 +12,7 @@ from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
+from sb3_mtte.common.update_hooks import NegativeTransferWeights, UpdateHook
 from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
 from sb3_mtte.mtsacte.callbacks import NegativeTransferLogCallback
@@ -230,9 +231,9 @@ class MTSACTE(MTSAC):
         return super()._init_callback(callbacks, progress_bar)
 
     # --------------------------------------------------------------------------------------------- training
-    def task_weights_for_policy(self) -> th.Tensor:
-        """w of Eq. 8 from the last recomputation (uniform before the first)."""
-        return self.task_weights
+    def update_hooks(self) -> list[UpdateHook]:
+        """The actor's weights w of Eq. 8 from the last recomputation (uniform before the first)."""
+        return [*super().update_hooks(), NegativeTransferWeights()]
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
         # Iteration k of Algorithm 1 spans vector steps [k H, (k + 1) H): its first update recomputes C_s and w.

@@ -1,5 +1,6 @@
-"""The optimizer steps of gradient surgery (PCGrad, CAGrad) for MTSAC; the maths is in
-:mod:`sb3_mtte.common.gradient_surgery`."""
+"""MTSAC's optimizer steps from ``(N,)`` per-task losses: on ``sum_i w_i L_i``, or, for parameters the tasks share
+and an update hook that combines gradients (PCGrad, CAGrad, ...), along the hook's direction from the per-task
+gradients (:mod:`sb3_mtte.common.update_hooks`)."""
 
 from __future__ import annotations
 
@@ -9,15 +10,15 @@ from sb3_mtte.common.gradient_surgery import (
     assign_flat_gradient,
     per_task_gradients,
     per_task_gradients_of_rows,
-    surgery_direction,
 )
 from sb3_mtte.common.policies import MultiTaskActor
+from sb3_mtte.common.update_hooks import UpdateHook
 from sb3_mtte.common.utils import check_finite
 
 
-class GradientSurgeryMixin:
-    """Steps an optimizer along the PCGrad / CAGrad combination of the per-task gradients of its parameters, for
-    the parameters the tasks share (:meth:`_task_step`).
+class TaskStepMixin:
+    """Steps an optimizer on per-task losses (:meth:`_task_step`), asking :attr:`update_hook` to combine the
+    per-task gradients of shared parameters when it does.
 
     The per-task gradients of an actor whose network all tasks share and that maps rows independently
     (:attr:`~sb3_mtte.common.policies.MultiTaskActor.shared_rows_network`, e.g. SAC-MT's) cost about one backward
@@ -25,13 +26,12 @@ class GradientSurgeryMixin:
     (:func:`~sb3_mtte.common.gradient_surgery.per_task_gradients`).
     """
 
-    gradient_surgery: str | None
-    cagrad_c: float
+    update_hook: UpdateHook
     actor: MultiTaskActor
 
-    def _setup_gradient_surgery(self) -> None:
+    def _keep_actor_output(self) -> None:
         """Let the actor keep its forward pass for the per-task gradients, when that pays."""
-        self.actor.keep_output = self.gradient_surgery is not None and self.actor.shared_rows_network is not None
+        self.actor.keep_output = self.update_hook.combines_gradients and self.actor.shared_rows_network is not None
 
     def _actor_per_task_gradients(self, task_losses: th.Tensor, params: list[th.Tensor]) -> th.Tensor:
         kept, self.actor.kept_output = self.actor.kept_output, None
@@ -51,11 +51,11 @@ class GradientSurgeryMixin:
         shared: bool,
         actor: bool = False,
     ) -> th.Tensor:
-        """One step of ``optimizer`` on the per-task losses: along the surgered direction when a method is set and
-        the tasks share the parameters, else on ``sum_i w_i L_i`` (disjoint per-task parameters have nothing to
-        combine). Returns ``sum_i w_i L_i``."""
-        if self.gradient_surgery is not None and shared:
-            return self._surgery_step(optimizer, name, task_losses, task_weights, actor)
+        """One step of ``optimizer`` on the per-task losses: along the hook's combination of the per-task gradients
+        when it combines them and the tasks share the parameters, else on ``sum_i w_i L_i`` (disjoint per-task
+        parameters have nothing to combine). Returns ``sum_i w_i L_i``."""
+        if self.update_hook.combines_gradients and shared:
+            return self._combined_step(optimizer, name, task_losses, task_weights, actor)
         return self._weighted_step(optimizer, name, task_losses, task_weights)
 
     @staticmethod
@@ -70,7 +70,7 @@ class GradientSurgeryMixin:
         optimizer.step()
         return loss
 
-    def _surgery_step(
+    def _combined_step(
         self,
         optimizer: th.optim.Optimizer,
         name: str,
@@ -78,7 +78,7 @@ class GradientSurgeryMixin:
         task_weights: th.Tensor,
         actor: bool = False,
     ) -> th.Tensor:
-        """One step of ``optimizer`` along the surgered direction; returns ``sum_i w_i L_i`` (for the logs).
+        """One step of ``optimizer`` along the hook's direction; returns ``sum_i w_i L_i`` (for the logs).
 
         :param optimizer: the optimizer of the parameters the tasks share.
         :param name: name of the loss (for the error of a non-finite loss).
@@ -93,7 +93,7 @@ class GradientSurgeryMixin:
             grads = self._actor_per_task_gradients(task_losses, params)
         else:
             grads = per_task_gradients(task_losses, params)
-        direction = surgery_direction(self.gradient_surgery, grads, task_weights, self.cagrad_c)  # type: ignore[arg-type]
+        direction = self.update_hook.combine_gradients(grads, task_weights)
         optimizer.zero_grad()
         assign_flat_gradient(params, direction)
         optimizer.step()
