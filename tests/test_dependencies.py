@@ -75,15 +75,20 @@ def import_as_on_a_plain_install(
     modules: list[str], blocked: list[str], then: str = "", cwd: Path | None = None
 ) -> subprocess.CompletedProcess:
     """Import ``modules`` in a fresh interpreter where the ``blocked`` top-level modules cannot be found, as after
-    ``pip install -e .`` alone (optional imports guarded by try/except still pass), then run the code ``then``."""
+    ``pip install -e .`` alone (optional imports guarded by try/except still pass, and a probe with
+    ``importlib.util.find_spec``, as torch makes for optional modules, finds them absent), then run the code ``then``."""
     code = (
-        "import importlib, sys\n"
+        "import importlib, importlib.util, sys\n"
         f"BLOCKED = set({blocked!r})\n"
         "class Blocker:\n"
         "    def find_spec(self, name, path=None, target=None):\n"
         "        if name.split('.')[0] in BLOCKED:\n"
         "            raise ModuleNotFoundError(f'No module named {name!r}', name=name)\n"
         "sys.meta_path.insert(0, Blocker())\n"
+        "installed_spec = importlib.util.find_spec\n"
+        "def find_spec(name, package=None):\n"
+        "    return None if name.split('.')[0] in BLOCKED else installed_spec(name, package)\n"
+        "importlib.util.find_spec = find_spec\n"
         f"for name in {modules!r}: importlib.import_module(name)\n"
         f"{then}\n"
     )

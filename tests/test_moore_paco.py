@@ -332,8 +332,8 @@ def test_bad_input_raises_a_clear_error(policy, kwargs, match):
             small_model(policy, **kwargs)
 
 
-@pytest.mark.parametrize("benchmark", ["MT10-cpu", "MT20-cpu"])
-def test_table1_shows_every_published_number_and_source_of_the_registry(benchmark):
+@pytest.mark.parametrize("env_name", ["MT10-cpu", "MT20-cpu"])
+def test_table1_shows_every_published_number_and_source_of_the_registry(env_name):
     """Table 1 of a benchmark lists, beside each algorithm with runs, its published number on that benchmark family
     as the registry holds it, and the source of every number that is not the paper's Table 1."""
     published = paper_table1()
@@ -341,8 +341,8 @@ def test_table1_shows_every_published_number_and_source_of_the_registry(benchmar
     scores = {label: np.full((2, 3), 0.5) for label in published}
     estimate = Estimate(0.5, 0.4, 0.6)
     aggregates = {label: {"mean": estimate, "iqm": estimate} for label in scores}
-    text = table1(benchmark, BenchmarkStatistics(scores, aggregates, None, {}), reps=5)
-    family = benchmark.split("-")[0]
+    text = table1(env_name, BenchmarkStatistics(scores, aggregates, None, {}), reps=5)
+    family = env_name.split("-")[0]
     for label, values in published.items():
         cell = f"{values[family]:.1f}" if family in values else "-"
         assert f"| {label} | 2 | 50.0 [40.0, 60.0] | 50.0 [40.0, 60.0] | {cell} |" in text, label
