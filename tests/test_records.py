@@ -114,6 +114,21 @@ def test_readme_command_draws_one_figure_set_and_table_per_benchmark_from_record
     assert (tmp_path / "table1_toy-conflict.md").read_text() in capsys.readouterr().out
 
 
+def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):
+    """docs/figures holds, for every benchmark with records in docs/records, the Table 1 and the aggregate numbers
+    that the README's command draws from them now, and the README shows each of those tables."""
+    args = readme_plot_command()
+    plot.main([str(ROOT / args[0]), "--out", str(tmp_path), *args[3:]])
+    readme = (ROOT / "README.md").read_text()
+    benchmarks = sorted(path.name for path in (ROOT / "docs" / "records").iterdir() if path.is_dir())
+    assert benchmarks
+    for env_id in benchmarks:
+        for name in (f"table1_{env_id}.md", f"results_{env_id}.json"):
+            committed = (ROOT / args[2] / name).read_text()
+            assert committed == (tmp_path / name).read_text(), f"{name}: redraw with the README's command"
+        assert (tmp_path / f"table1_{env_id}.md").read_text().strip() in readme, env_id
+
+
 def check_table(table: str, by_label: dict[str, list[dict]]) -> None:
     header, _, *rows = [line.split("|")[1:-1] for line in table.splitlines() if line.startswith("|")]
     assert [h.strip() for h in header][:5] == ["Algorithm", "n", "Mean success (%)", "IQM (%)", "P(Ours > X)"]

@@ -26,6 +26,7 @@ DIGESTS = Path(__file__).resolve().parent / "data" / "variant_digests.json"
 VECTOR_STEPS, START = 120, 40
 SMALL = {"net_arch": [32, 32]}
 _AUTHORS = {"critic_arch": "shared", "ent_coef_arch": "shared"}
+_TE = {"iteration_length": 30, "rep_gradient_steps": 2, "top_k": 3}
 CASES: dict[str, tuple[type, str, dict[str, Any]]] = {
     "mt": (MTSAC, "MlpPolicy", {}),
     "mh": (MTSAC, "MultiHeadPolicy", {}),
@@ -40,7 +41,9 @@ CASES: dict[str, tuple[type, str, dict[str, Any]]] = {
     "paco": (MTSAC, "PaCoPolicy", {"policy_kwargs": {**SMALL, "n_parameter_sets": 3}}),
     # A threshold the toy's critic losses cross: masks and resets take part in the run.
     "paco_collapse": (MTSAC, "PaCoPolicy", {"policy_kwargs": {**SMALL, "task_loss_threshold": 0.7}}),
-    "mtsacte": (MTSACTE, "MlpPolicy", {"iteration_length": 30, "rep_gradient_steps": 2, "top_k": 3}),
+    "mtsacte": (MTSACTE, "MlpPolicy", _TE),
+    "mtsacte_one_pass": (MTSACTE, "MlpPolicy", {**_TE, "nt_chunk_size": None}),
+    "mtsacte_gradient_dot": (MTSACTE, "MlpPolicy", {**_TE, "nt_estimator": "gradient_dot"}),
 }
 
 
@@ -63,11 +66,13 @@ def train_case(name: str) -> Any:
 
 
 def parameter_digest(model: Any) -> str:
-    """sha256 of every tensor of the policy (parameters and buffers), the entropy coefficients and MTSACTE's w."""
+    """sha256 of every tensor of the policy (parameters and buffers), the entropy coefficients and MTSACTE's last
+    transfer matrix, mu and w."""
     tensors = dict(model.policy.state_dict())
     tensors["ent_coef"] = model.entropy_coefficients
-    if hasattr(model, "task_weights"):
-        tensors["task_weights"] = model.task_weights
+    for name in ("transfer_matrix", "mu", "task_weights"):
+        if hasattr(model, name):
+            tensors[name] = th.as_tensor(getattr(model, name))
     digest = hashlib.sha256()
     for key in sorted(tensors):
         digest.update(key.encode())
