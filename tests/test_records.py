@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sb3_mtte import plot
-from sb3_mtte.experiments import records, summary_figures
+from sb3_mtte.experiments import records, summary_figures, variants
 from sb3_mtte.experiments.statistics import (
     aggregate_estimates,
     curve_estimates,
@@ -114,6 +114,27 @@ def test_readme_command_draws_one_figure_set_and_table_per_benchmark_from_record
     assert (tmp_path / "table1_toy-conflict.md").read_text() in capsys.readouterr().out
 
 
+def test_success_figure_draws_the_ablations_in_a_panel_of_their_own(tmp_path, monkeypatch):
+    """With a Fig. 7 ablation among the records, Ours and its ablation share a second panel; SAC-MT stays in the
+    first panel with Ours."""
+    records_dir = tmp_path / "records" / "MT10-cpu"
+    records_dir.mkdir(parents=True)
+    by_label = sample_records("MT10-cpu")
+    ablated = {**by_label["Ours"][0], "algo": "mtsacte_novae", "label": "Ours-VAE"}
+    ablated["curve"] = {**ablated["curve"], "success_rate": np.asarray(ablated["curve"]["success_rate"]) / 2}
+    for record in [*(r for runs in by_label.values() for r in runs), ablated]:
+        path = records_dir / f"{record['algo']}_seed{record['seed']}.json"
+        path.write_text(json.dumps(record, default=lambda a: a.tolist()))
+    figs = {}
+    monkeypatch.setattr(
+        summary_figures, "save_figure", lambda fig, path, opts, written: figs.__setitem__(path.name, fig)
+    )
+    plot.main([str(tmp_path / "records"), "--out", str(tmp_path / "figures"), "--reps", str(REPS)])
+    by_label["Ours-VAE"] = [json.loads(json.dumps(ablated, default=lambda a: a.tolist()))]
+    check_success_figure(figs["success_MT10-cpu.png"], by_label)
+    assert [ax.get_title() for ax in figs["success_MT10-cpu.png"].axes] == ["Table 1 and peers", "ablations (Fig. 7)"]
+
+
 def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):
     """docs/figures holds, for every benchmark with records in docs/records, the Table 1 and the aggregate numbers
     that the README's command draws from them now, and the README shows each of those tables."""
@@ -148,14 +169,23 @@ def check_table(table: str, by_label: dict[str, list[dict]]) -> None:
 
 
 def check_success_figure(fig, by_label: dict[str, list[dict]]) -> None:
-    """One line per method, labelled with its n, on the mean over seeds and tasks of the recorded curves."""
-    (ax,) = fig.axes
-    lines = {line.get_label(): line for line in ax.get_lines()}
-    assert set(lines) == {f"{label} (n={len(runs)})" for label, runs in by_label.items()}
-    assert len(ax.collections) == len(by_label)  # a band per method
-    for label, runs in by_label.items():
-        expected = 100 * np.mean([r["curve"]["success_rate"] for r in runs], axis=(0, 2))
-        np.testing.assert_allclose(lines[f"{label} (n={len(runs)})"].get_ydata(), expected, atol=1e-9)
+    """One line per method, labelled with its n, on the mean over seeds and tasks of the recorded curves; an
+    ablation (Fig. 7) is drawn in a panel of its own beside the method it ablates, every other method in the first."""
+    fig7 = variants.ablation_labels()
+    has_ablations = any(label in fig7[1:] for label in by_label)
+    panels = [{line.get_label(): line for line in ax.get_lines()} for ax in fig.axes]
+    assert len(panels) == 1 + has_ablations
+    name = {label: f"{label} (n={len(runs)})" for label, runs in by_label.items()}
+    assert set(panels[0]) == {name[label] for label in by_label if label not in fig7[1:]}
+    if has_ablations:
+        assert set(panels[1]) == {name[label] for label in by_label if label in fig7}
+    bands = [sum(len(runs) > 1 for label, runs in by_label.items() if name[label] in panel) for panel in panels]
+    assert [len(ax.collections) for ax in fig.axes] == bands  # a band per method with more than one run
+    for panel in panels:
+        for label, runs in by_label.items():
+            if name[label] in panel:
+                expected = 100 * np.mean([r["curve"]["success_rate"] for r in runs], axis=(0, 2))
+                np.testing.assert_allclose(panel[name[label]].get_ydata(), expected, atol=1e-9)
 
 
 # ================================================================================================ records

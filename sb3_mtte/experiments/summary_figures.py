@@ -28,6 +28,7 @@ from sb3_mtte.experiments.figures import (
 )
 from sb3_mtte.experiments.runs import Run, common_grid, label_order, smooth, success_curve
 from sb3_mtte.experiments.statistics import PROFILE_TAUS, curve_estimates, performance_profiles
+from sb3_mtte.experiments.variants import ablation_labels
 
 BAND_NOTE = "mean over seeds, band: 95% stratified-bootstrap CI"
 
@@ -77,21 +78,46 @@ def _band(
         ax.fill_between(x, 100 * low, 100 * high, alpha=0.2, color=color)
 
 
+def success_panels(labels: Sequence[str]) -> list[tuple[str, list[str]]]:
+    """The panels of the success figure: (title, labels). Table 1's rows and the peers in one; when an ablation
+    (Fig. 7) has runs, the ablated method and its ablations in a second, so neither panel is crowded."""
+    fig7 = ablation_labels()
+    ablations = [label for label in labels if label in fig7[1:]]
+    if not ablations:
+        return [("", list(labels))]
+    others = [label for label in labels if label not in ablations]
+    ablated = [label for label in labels if label in fig7 and label not in ablations]
+    return [("Table 1 and peers", others), ("ablations (Fig. 7)", ablated + ablations)]
+
+
 def plot_success(bench: str, bands: Mapping[str, CurveBand], opts: PlotOptions, written: list[Path]) -> None:
-    """Mean success over tasks of every algorithm, with its confidence band over seeds."""
-    fig = new_figure(7, 4.5)
-    ax = fig.subplots()
+    """Mean success over tasks of every algorithm, with its confidence band over seeds; the y axis spans the
+    highest band (at least 0-25%) so that low curves stay apart."""
+    panels = success_panels(list(bands))
+    fig = new_figure(7 if len(panels) == 1 else 11, 4.5)
+    axes = fig.subplots(1, len(panels), sharey=True, squeeze=False)[0]
     styles = algorithm_styles(list(bands))
-    for label, band in bands.items():
-        est = band.estimates
-        _band(ax, band.x, est["mean"], est["low"], est["high"], f"{label} (n={band.n_runs})", styles[label])
-    ax.set_xlabel(opts.xlabel)
-    ax.set_ylabel("success rate (%)")
-    ax.set_ylim(-2, 102)
-    ax.set_title(f"{bench}: success averaged over tasks ({BAND_NOTE})", fontsize=9)
-    ax.grid(alpha=0.3)
-    if ax.lines:
-        ax.legend(fontsize=8)
+    top = max([25.0] + [100 * float(np.max(band.estimates["high"])) for band in bands.values()])
+    for ax, (title, labels) in zip(axes, panels):
+        for label in labels:
+            est = bands[label].estimates
+            _band(
+                ax,
+                bands[label].x,
+                est["mean"],
+                est["low"],
+                est["high"],
+                f"{label} (n={bands[label].n_runs})",
+                styles[label],
+            )
+        ax.set_xlabel(opts.xlabel)
+        ax.set_ylim(-1, min(102.0, 1.1 * top))
+        ax.set_title(title, fontsize=9)
+        ax.grid(alpha=0.3)
+        if ax.lines:
+            ax.legend(fontsize=8, loc="upper left")
+    axes[0].set_ylabel("success rate (%)")
+    wrapped_title(fig, f"{bench}: success averaged over tasks ({BAND_NOTE})")
     save_figure(fig, opts.out / f"success_{safe_name(bench)}.png", opts, written)
 
 
