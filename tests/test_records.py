@@ -16,6 +16,7 @@ from sb3_mtte.experiments.statistics import (
     aggregate_estimates,
     curve_estimates,
     improvement_probabilities,
+    performance_profiles,
 )
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -60,6 +61,23 @@ def test_mean_and_iqm_match_plain_numpy_and_intervals_are_over_runs():
     same_runs = np.tile([[0.2, 0.6, 1.0, 0.0]], (3, 1))
     fixed = aggregate_estimates({"b": same_runs}, reps=REPS)["b"]["mean"]
     assert fixed.low == fixed.high == pytest.approx(same_runs.mean())
+
+
+def test_a_methods_intervals_do_not_move_when_another_method_is_added():
+    """Adding a row to the table (a method placed before it, more runs of another) leaves a row's numbers alone."""
+    rng = np.random.default_rng(1)
+    ours, other, new = rng.uniform(size=(3, 4)), rng.uniform(size=(2, 4)), rng.uniform(size=(5, 4))
+    before = aggregate_estimates({"ours": ours}, reps=REPS)
+    after = aggregate_estimates({"new": new, "ours": ours}, reps=REPS)
+    assert after["ours"] == before["ours"]
+    assert (
+        improvement_probabilities(ours, {"new": new, "other": other}, reps=REPS)["other"]
+        == (improvement_probabilities(ours, {"other": other}, reps=REPS)["other"])
+    )
+    profile, band = performance_profiles({"ours": ours}, reps=REPS)
+    profile_after, band_after = performance_profiles({"new": new, "ours": ours}, reps=REPS)
+    np.testing.assert_array_equal(band_after["ours"], band["ours"])
+    np.testing.assert_array_equal(profile_after["ours"], profile["ours"])
 
 
 def test_probability_of_improvement_matches_pairwise_counts():

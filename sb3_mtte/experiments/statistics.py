@@ -3,8 +3,8 @@
 Scores are success rates in [0, 1], one matrix ``(runs, tasks)`` per algorithm (its seeds x the benchmark's tasks),
 or ``(runs, tasks, times)`` for curves. Intervals are 95% stratified-bootstrap confidence intervals over runs
 (runs are resampled within each task). rliable draws its resamples from numpy's global generator, so every estimate
-here runs under :func:`seeded`, which sets it from ``seed`` and restores it afterwards: the same scores and seed
-give the same intervals.
+here runs under :func:`seeded`, which sets it from ``seed`` for each label and restores it afterwards: the same
+scores and seed give the same intervals, and a label's interval depends on its own scores alone.
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from rliable import library as rly
@@ -47,11 +48,22 @@ def seeded(seed: int) -> Iterator[None]:
         np.random.set_state(state)
 
 
+def _per_label(scores: Mapping[str, Any], draw: Callable[[dict], tuple[dict, dict]], seed: int) -> tuple[dict, dict]:
+    """``draw`` (an rliable estimator returning two dicts by label) run for each label alone, from a generator set
+    from ``seed``, so that a label's interval does not change when another label's runs are added."""
+    estimates: tuple[dict, dict] = ({}, {})
+    for label, label_scores in scores.items():
+        with seeded(seed):
+            drawn = draw({label: label_scores})
+        for out, by_label in zip(estimates, drawn):
+            out[label] = by_label[label]
+    return estimates
+
+
 def _intervals(
     scores: Mapping[str, np.ndarray | list[np.ndarray]], func: Callable[..., np.ndarray], reps: int, seed: int
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
-    with seeded(seed):
-        return rly.get_interval_estimates(dict(scores), func, reps=reps)
+    return _per_label(scores, lambda one: rly.get_interval_estimates(one, func, reps=reps), seed)
 
 
 def aggregate_estimates(
@@ -97,8 +109,7 @@ def performance_profiles(
 ) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Score distributions: per label, the share of runs x tasks with success above each tau, and its interval
     ``(2, len(taus))``."""
-    with seeded(seed):
-        return rly.create_performance_profile(dict(scores), taus, reps=reps)
+    return _per_label(scores, lambda one: rly.create_performance_profile(one, taus, reps=reps), seed)
 
 
 def curve_estimates(curves: np.ndarray, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED) -> dict[str, np.ndarray]:
