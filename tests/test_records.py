@@ -151,6 +151,9 @@ def test_success_figure_draws_the_ablations_in_a_panel_of_their_own(tmp_path, mo
     by_label["Ours-VAE"] = [json.loads(json.dumps(ablated, default=lambda a: a.tolist()))]
     check_success_figure(figs["success_MT10-cpu.png"], by_label)
     assert [ax.get_title() for ax in figs["success_MT10-cpu.png"].axes] == ["Table 1 and peers", "ablations (Fig. 7)"]
+    per_task = figs["per_task_MT10-cpu.png"]
+    assert {line.get_label() for line in per_task.axes[0].get_lines()} == {"SAC-MT", "Ours"}
+    assert "Fig. 7's ablations: success figure" in per_task.get_suptitle()
 
 
 def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):

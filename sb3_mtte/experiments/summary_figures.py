@@ -1,8 +1,10 @@
 """The three figures of a benchmark drawn with every method, from run folders or records (``<b>`` = benchmark):
 
 - ``success_<b>.png`` (Figs. 4 and 7): success averaged over tasks against env steps, the mean over seeds with its
-  95% stratified-bootstrap confidence band (runs resampled within each task at every evaluation);
-- ``per_task_<b>.png`` (Figs. 8-9): success of every task, the mean over seeds with its 95% bootstrap band;
+  95% stratified-bootstrap confidence band (runs resampled within each task at every evaluation), Fig. 7's
+  ablations in a second panel beside the method they ablate;
+- ``per_task_<b>.png`` (Figs. 8-9): success of every task, the mean over seeds with its 95% bootstrap band (every
+  method but the ablations);
 - ``profile_<b>.png``: performance profile of the final success (score distribution over runs x tasks: the share
   with success above tau) with its 95% confidence band.
 """
@@ -124,13 +126,17 @@ def plot_success(bench: str, bands: Mapping[str, CurveBand], opts: PlotOptions, 
 def plot_per_task(
     bench: str, bands: Mapping[str, CurveBand], task_names: Sequence[str], opts: PlotOptions, written: list[Path]
 ) -> None:
-    """Success of every task, one panel per task, every algorithm with its confidence band over seeds."""
+    """Success of every task, one panel per task, every algorithm but Fig. 7's ablations (those are in the success
+    figure's second panel) with its confidence band over seeds."""
     fig, axes = panel_grid(len(task_names), 5, 3.2, 2.6)
     styles = algorithm_styles(list(bands))
+    shown = success_panels(list(bands))[0][1]
     for i, (ax, name) in enumerate(zip(axes, task_names)):
-        for label, band in bands.items():
-            est = band.estimates
-            _band(ax, band.x, est["task_mean"][i], est["task_low"][i], est["task_high"][i], label, styles[label])
+        for label in shown:
+            est = bands[label].estimates
+            _band(
+                ax, bands[label].x, est["task_mean"][i], est["task_low"][i], est["task_high"][i], label, styles[label]
+            )
         ax.set_title(short_task_name(name), fontsize=9)
         ax.set_ylim(-2, 102)
         ax.tick_params(labelsize=7)
@@ -138,7 +144,8 @@ def plot_per_task(
     handles, labels = axes[0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=8)
-    wrapped_title(fig, f"{bench}: success rate (%) per task vs {opts.xlabel} ({BAND_NOTE})")
+    left_out = "; Fig. 7's ablations: success figure" if len(shown) < len(bands) else ""
+    wrapped_title(fig, f"{bench}: success rate (%) per task vs {opts.xlabel} ({BAND_NOTE}{left_out})")
     save_figure(fig, opts.out / f"per_task_{safe_name(bench)}.png", opts, written)
 
 
