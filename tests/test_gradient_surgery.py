@@ -10,6 +10,7 @@ import torch as th
 from conftest import ENV, tiny_train
 
 from sb3_mtte import MTSAC, make_mt_env
+from sb3_mtte.common.ensemble import EnsembleMLP
 from sb3_mtte.common.gradient_surgery import (
     cagrad_coefficients,
     cagrad_dual_objective,
@@ -198,17 +199,32 @@ def test_per_task_gradients_of_rows_equal_a_loop_of_backward_passes():
     th.testing.assert_close(per_task_gradients_of_rows(net, x, out, losses), th.stack(loop), rtol=1e-12, atol=1e-12)
 
 
+def test_per_task_gradients_of_rows_of_shared_twins_equal_a_loop_of_backward_passes():
+    """A shared twin critic (two ensemble members on the same task-major rows, tasks on axis 1, outputs flattened
+    over tasks and rows as the critic returns them): the same as N backward passes."""
+    th.manual_seed(1)
+    net = EnsembleMLP(2, 3, [8, 8], 1).double()
+    x = th.randn(1, 4, 5, 3, dtype=th.float64).expand(2, -1, -1, -1)
+    out = net(x.flatten(1, 2))
+    q = out.view(2, 4, 5)
+    losses = (q.min(dim=0).values.exp() + (q - 1.0).pow(2).sum(0)).mean(-1)
+    params = list(net.parameters())
+    loop = [th.cat([g.flatten() for g in th.autograd.grad(loss, params, retain_graph=True)]) for loss in losses]
+    fast = per_task_gradients_of_rows(net, x, out, losses, task_dim=1)
+    th.testing.assert_close(fast, th.stack(loop), rtol=1e-12, atol=1e-12)
+
+
 class RecordingMTSAC(MTSAC):
     """Records the per-task losses, the parameters and the gradients of every optimizer step it makes."""
 
-    def _combined_step(self, optimizer, name, task_losses, task_weights, actor=False):
+    def _combined_step(self, optimizer, name, task_losses, task_weights, module=None):
         params = [p for group in optimizer.param_groups for p in group["params"]]
         loop = [th.autograd.grad(task_losses[i], params, retain_graph=True) for i in range(self.n_tasks)]
         loop = np.stack([th.cat([g.flatten() for g in grads]).double().numpy() for grads in loop])
         rng_state = th.get_rng_state()
         before = [p.detach().clone() for p in params]
-        self.fast_path = self.actor.kept_output is not None
-        result = super()._combined_step(optimizer, name, task_losses, task_weights, actor)
+        fast_path = module is not None and module.kept_output is not None
+        result = super()._combined_step(optimizer, name, task_losses, task_weights, module)
         grad = [p.grad.clone() for p in params]
         weights = task_weights.double().numpy()
         self.records[name] = {
@@ -218,6 +234,7 @@ class RecordingMTSAC(MTSAC):
             "before": before,
             "params": params,
             "grad": grad,
+            "fast_path": fast_path,
         }
         return result
 
@@ -239,8 +256,8 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, 
     """The gradient in ``.grad`` before Adam's step is the method's combination (with the model's c) of per-task
     gradients from a loop of backward passes, and the actor's parameter change is Adam's first step on it; the
     critic and the entropy coefficient are surgered too when shared (``arch``), not when per task (their tasks share
-    no parameter). SAC-MT's actor takes the one-backward-pass gradients, a multi-head actor (per-task heads) the
-    generic ones."""
+    no parameter). SAC-MT's actor and the shared critic take the one-backward-pass gradients, a multi-head actor
+    (per-task heads) and beta the generic ones."""
     model = small_model(
         policy, gradient_surgery=method, cagrad_c=0.7, critic_arch=arch, ent_coef_arch=arch, learning_rate=1e-3
     )
@@ -250,7 +267,10 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, 
     fresh_adam = th.optim.Adam(model.actor.parameters(), lr=1e-3)
     model.actor.optimizer = fresh_adam
     model.train(1, 16)
-    assert model.fast_path == (policy == "MlpPolicy")
+    fast_paths = {name: record["fast_path"] for name, record in model.records.items()}
+    expected_fast = {"actor loss": policy == "MlpPolicy", "critic loss": True, "entropy coefficient loss": False}
+    assert fast_paths == {name: expected_fast[name] for name in fast_paths}
+    assert model.critic.kept_output is None  # the actor loss's pass through the critic (a constant there) is not kept
     assert set(model.records) == (SURGERED if arch == "shared" else {"actor loss"})
     for name, record in model.records.items():
         grads, weights = record["loop"], record["w"]  # 1/N for the actor and a shared beta, ones for the critic

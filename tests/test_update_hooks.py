@@ -100,3 +100,4 @@ def test_every_algorithm_holds_its_hooks_and_trains(algorithm, policy, kwargs, h
     model.learn(72)
     assert model._n_updates > 0
     assert model.actor.keep_output == (bool(kwargs) and policy == "MlpPolicy")  # the one-pass per-task gradients
+    assert not model.critic.keep_output  # per-task critics: nothing to combine

@@ -7,11 +7,12 @@ from torch import nn
 from torch.func import functional_call
 
 from sb3_mtte.common.ensemble import EnsembleMLP
+from sb3_mtte.common.gradient_surgery import KeepsRows
 
 CRITIC_ARCHS = ("per_task", "shared")
 
 
-class MultiTaskCritic(nn.Module):
+class MultiTaskCritic(KeepsRows, nn.Module):
     """Twin Q-networks evaluated on a task-major batch in one batched pass.
 
     ``per_task``: Q_psi_i(s, a) for every task i, i.e. ``n_critics * N`` independent MLPs on (state, action),
@@ -43,6 +44,10 @@ class MultiTaskCritic(nn.Module):
         in_dim = state_dim + action_dim + (0 if self.per_task else n_tasks)
         n_members = n_critics * (n_tasks if self.per_task else 1)
         self.q_net = EnsembleMLP(n_members, in_dim, net_arch, 1, activation_fn)
+
+    @property
+    def shared_rows_network(self) -> nn.Module | None:
+        return None if self.per_task else self.q_net
 
     def task_parameters(self) -> dict[str, th.Tensor]:
         """The Q-networks' parameters by task, ``{name: (N, n_critics, ...)}``, the layout of
@@ -81,5 +86,7 @@ class MultiTaskCritic(nn.Module):
             length, width = x.shape[1:]
             x = x.unsqueeze(1).expand(n, c, length, width).reshape(n * c, length, width)
             return self.q_net(x).view(n, c, length).transpose(0, 1)
-        x = th.cat([obs, actions], dim=-1)
-        return self.q_net(x.view(1, -1, x.shape[-1]).expand(c, -1, -1)).view(c, n, -1)
+        x = th.cat([obs, actions], dim=-1).unsqueeze(0).expand(c, -1, -1, -1)
+        q_values = self.q_net(x.flatten(1, 2))
+        self._keep_rows(x, q_values, task_dim=1)
+        return q_values.view(c, n, -1)

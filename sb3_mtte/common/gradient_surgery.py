@@ -3,7 +3,7 @@
 Both methods turn the per-task gradients G (N x P, row i = grad of task i's loss) into one update direction that is a
 linear combination of the rows, d = a^T G. Everything they decide is decided on the N x N Gram matrix G G^T, so the
 pure functions below work on the Gram matrix and return the coefficients a (N,); :func:`surgery_direction` applies
-d = a^T G to the G of :func:`per_task_gradients_of_rows` (a shared network, linear in N) or
+d = a^T G to the G of :func:`per_task_gradients_of_rows` (a shared network, one backward pass) or
 :func:`per_task_gradients` (any parameters, N backward passes).
 """
 
@@ -154,7 +154,7 @@ def per_task_gradients(task_losses: th.Tensor, params: list[th.Tensor]) -> th.Te
 
 
 def per_task_gradients_of_rows(
-    network: nn.Module, inputs: th.Tensor, outputs: th.Tensor, task_losses: th.Tensor
+    network: nn.Module, inputs: th.Tensor, outputs: th.Tensor, task_losses: th.Tensor, task_dim: int = 0
 ) -> th.Tensor:
     """``(N, P)`` gradients of the N task losses w.r.t. ``network``'s parameters, for a network that every task
     shares and that maps each row of a task-major batch on its own (an MLP on state + one-hot).
@@ -164,20 +164,50 @@ def per_task_gradients_of_rows(
     vector-Jacobian product of the network turns them into per-task gradients (each weight gradient one batched
     matmul over tasks): the cost of about one backward pass, where :func:`per_task_gradients` pays N of them.
 
-    :param network: the shared network (called on ``(L, in)`` rows).
-    :param inputs: ``(N, L, in)`` what ``network`` was called on.
-    :param outputs: ``(N, L, out)`` what it returned, with the graph from there to ``task_losses``.
+    :param network: the shared network (called on one task's slice of ``inputs``).
+    :param inputs: what ``network`` was called on, with the tasks on axis ``task_dim`` (``(N, L, in)`` for a
+        plain MLP; ``(n_members, N, L, in)`` with ``task_dim=1`` for an ensemble of shared members).
+    :param outputs: what it returned, with the graph from there to ``task_losses``; any shape that reshapes to
+        ``inputs``' shape with the last axis of its own (the rows in task-major order).
     :param task_losses: ``(N,)``.
+    :param task_dim: the task axis of ``inputs``.
     :return: ``(N, P)``, columns in the order of ``network.parameters()``.
     """
     (cotangents,) = th.autograd.grad(task_losses.sum(), outputs)
+    cotangents = cotangents.reshape(*inputs.shape[:-1], -1)
     params = {name: p.detach() for name, p in network.named_parameters()}
 
     def task_gradient(task_inputs: th.Tensor, task_cotangent: th.Tensor) -> dict[str, th.Tensor]:
         return grad(lambda p: (functional_call(network, p, (task_inputs,)) * task_cotangent).sum())(params)
 
-    grads = vmap(task_gradient)(inputs.detach(), cotangents)
+    grads = vmap(task_gradient, in_dims=task_dim)(inputs.detach(), cotangents)
     return th.cat([grads[name].reshape(task_losses.shape[0], -1) for name in params], dim=1)
+
+
+class KeepsRows:
+    """Mixin of a module that can keep its last differentiable forward pass for the one-pass per-task gradients
+    of :func:`per_task_gradients_of_rows` (gradient surgery on the actor or a shared critic)."""
+
+    keep_output: bool = False
+    """Whether :meth:`_keep_rows` keeps what it is given (set by the algorithm when it combines gradients)."""
+    kept_output: tuple[th.Tensor, th.Tensor, int] | None = None
+    """``(inputs, outputs, task_dim)`` of the last differentiable pass of :attr:`shared_rows_network`."""
+
+    @property
+    def shared_rows_network(self) -> nn.Module | None:
+        """The network the module is, if all its parameters are shared by the tasks and it maps every row on its
+        own (then per-task gradients cost one backward pass); None otherwise."""
+        return None
+
+    def _keep_rows(self, inputs: th.Tensor, outputs: th.Tensor, task_dim: int = 0) -> None:
+        """Keep a pass that differentiates the shared network's parameters (not one where they are constants)."""
+        if self.keep_output and outputs.requires_grad and next(self.shared_rows_network.parameters()).requires_grad:
+            self.kept_output = (inputs, outputs, task_dim)
+
+    def take_kept_rows(self) -> tuple[th.Tensor, th.Tensor, int] | None:
+        """The kept pass, once (it holds the graph)."""
+        kept, self.kept_output = self.kept_output, None
+        return kept
 
 
 def surgery_direction(method: str, grads: th.Tensor, task_weights: th.Tensor, cagrad_c: float = 0.5) -> th.Tensor:

@@ -18,13 +18,14 @@ from torch.func import functional_call, vmap
 
 from sb3_mtte.common.critics import MultiTaskCritic
 from sb3_mtte.common.distributions import squashed_gaussian, squashed_gaussian_action
+from sb3_mtte.common.gradient_surgery import KeepsRows
 from sb3_mtte.common.update_hooks import UpdateHook
 from sb3_mtte.common.utils import task_ids_from_obs
 
 DEFAULT_NET_ARCH = [400, 400]
 
 
-class MultiTaskActor(nn.Module):
+class MultiTaskActor(KeepsRows, nn.Module):
     """A tanh-squashed Gaussian policy for N tasks; subclasses implement :meth:`dist_params`.
 
     One forward pass serves training and the per-task gradients of the negative-transfer evaluation (:meth:`forward`,
@@ -43,16 +44,6 @@ class MultiTaskActor(nn.Module):
     def __init__(self, state_dim: int, action_dim: int, n_tasks: int) -> None:
         super().__init__()
         self.state_dim, self.action_dim, self.n_tasks = state_dim, action_dim, n_tasks
-        self.keep_output = False
-        """Keep the last differentiable forward pass's ``(obs, dist_params)`` in :attr:`kept_output` (read by
-        gradient surgery, see :attr:`shared_rows_network`)."""
-        self.kept_output: tuple[th.Tensor, th.Tensor] | None = None
-
-    @property
-    def shared_rows_network(self) -> nn.Module | None:
-        """The network :meth:`dist_params` is, if all its parameters are shared by the tasks and it maps every row
-        on its own (then per-task gradients cost one backward pass); None otherwise."""
-        return None
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         """Raw output (mean and log-std of the Gaussian before the tanh).
@@ -70,8 +61,7 @@ class MultiTaskActor(nn.Module):
         :param noise: ``(N, L, A)`` standard normal noise, or None to draw it.
         """
         params = self.dist_params(obs)
-        if self.keep_output and params.requires_grad:
-            self.kept_output = (obs, params)
+        self._keep_rows(obs, params)
         return squashed_gaussian(params, noise)
 
     def forward_stacked(

@@ -209,7 +209,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
     def _setup_update_hook(self) -> None:
         self.update_hook = UpdateHooks([*self.update_hooks(), *self.policy.update_hooks()])
         self.update_hook.attach(self)
-        self._keep_actor_output()
+        self._keep_rows()
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         """Policy arguments owned by the algorithm (not stored in ``policy_kwargs``)."""
@@ -315,7 +315,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         :return: the loss that was minimised.
         """
         shared = self.critic_arch == "shared"
-        return self._task_step(self.critic.optimizer, "critic loss", task_losses, task_weights, shared)
+        return self._task_step(self.critic.optimizer, "critic loss", task_losses, task_weights, shared, self.critic)
 
     def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
         """Apply one actor update from the per-task losses -J_SAC,i.
@@ -324,7 +324,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`_actor_weights`) times the loss mask.
         :return: the loss that was minimised.
         """
-        return self._task_step(self.actor.optimizer, "actor loss", task_losses, task_weights, True, actor=True)
+        return self._task_step(self.actor.optimizer, "actor loss", task_losses, task_weights, True, self.actor)
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:

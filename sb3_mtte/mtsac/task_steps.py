@@ -7,6 +7,7 @@ from __future__ import annotations
 import torch as th
 
 from sb3_mtte.common.gradient_surgery import (
+    KeepsRows,
     assign_flat_gradient,
     per_task_gradients,
     per_task_gradients_of_rows,
@@ -20,27 +21,31 @@ class TaskStepMixin:
     """Steps an optimizer on per-task losses (:meth:`_task_step`), asking :attr:`update_hook` to combine the
     per-task gradients of shared parameters when it does.
 
-    The per-task gradients of an actor whose network all tasks share and that maps rows independently
-    (:attr:`~sb3_mtte.common.policies.MultiTaskActor.shared_rows_network`, e.g. SAC-MT's) cost about one backward
-    pass (:func:`~sb3_mtte.common.gradient_surgery.per_task_gradients_of_rows`); any other parameters take N
-    (:func:`~sb3_mtte.common.gradient_surgery.per_task_gradients`).
+    The per-task gradients of a module whose network all tasks share and that maps rows independently
+    (:attr:`~sb3_mtte.common.gradient_surgery.KeepsRows.shared_rows_network`: SAC-MT's actor, a shared critic) cost
+    about one backward pass (:func:`~sb3_mtte.common.gradient_surgery.per_task_gradients_of_rows`); any other
+    parameters take N (:func:`~sb3_mtte.common.gradient_surgery.per_task_gradients`).
     """
 
     update_hook: UpdateHook
     actor: MultiTaskActor
+    critic: KeepsRows
 
-    def _keep_actor_output(self) -> None:
-        """Let the actor keep its forward pass for the per-task gradients, when that pays."""
-        self.actor.keep_output = self.update_hook.combines_gradients and self.actor.shared_rows_network is not None
+    def _keep_rows(self) -> None:
+        """Let the actor and the critic keep their forward passes for the per-task gradients, when that pays."""
+        for module in (self.actor, self.critic):
+            module.keep_output = self.update_hook.combines_gradients and module.shared_rows_network is not None
 
-    def _actor_per_task_gradients(self, task_losses: th.Tensor, params: list[th.Tensor]) -> th.Tensor:
-        kept, self.actor.kept_output = self.actor.kept_output, None
-        network = self.actor.shared_rows_network
-        if kept is None or network is None:
+    @staticmethod
+    def _per_task_gradients(module: KeepsRows | None, task_losses: th.Tensor, params: list[th.Tensor]) -> th.Tensor:
+        kept = None if module is None else module.take_kept_rows()
+        if kept is None:
             return per_task_gradients(task_losses, params)
+        network = module.shared_rows_network
         if [id(p) for p in network.parameters()] != [id(p) for p in params]:
-            raise RuntimeError("The actor optimizer's parameters must be those of its shared network, in order.")
-        return per_task_gradients_of_rows(network, *kept, task_losses)
+            raise RuntimeError("An optimizer's parameters must be those of its module's shared network, in order.")
+        inputs, outputs, task_dim = kept
+        return per_task_gradients_of_rows(network, inputs, outputs, task_losses, task_dim)
 
     def _task_step(
         self,
@@ -49,13 +54,14 @@ class TaskStepMixin:
         task_losses: th.Tensor,
         task_weights: th.Tensor,
         shared: bool,
-        actor: bool = False,
+        module: KeepsRows | None = None,
     ) -> th.Tensor:
         """One step of ``optimizer`` on the per-task losses: along the hook's combination of the per-task gradients
         when it combines them and the tasks share the parameters, else on ``sum_i w_i L_i`` (disjoint per-task
-        parameters have nothing to combine). Returns ``sum_i w_i L_i``."""
+        parameters have nothing to combine). ``module``: the module whose parameters ``optimizer`` steps, when it may
+        have kept its forward pass (:meth:`_keep_rows`). Returns ``sum_i w_i L_i``."""
         if self.update_hook.combines_gradients and shared:
-            return self._combined_step(optimizer, name, task_losses, task_weights, actor)
+            return self._combined_step(optimizer, name, task_losses, task_weights, module)
         return self._weighted_step(optimizer, name, task_losses, task_weights)
 
     @staticmethod
@@ -76,7 +82,7 @@ class TaskStepMixin:
         name: str,
         task_losses: th.Tensor,
         task_weights: th.Tensor,
-        actor: bool = False,
+        module: KeepsRows | None = None,
     ) -> th.Tensor:
         """One step of ``optimizer`` along the hook's direction; returns ``sum_i w_i L_i`` (for the logs).
 
@@ -84,15 +90,13 @@ class TaskStepMixin:
         :param name: name of the loss (for the error of a non-finite loss).
         :param task_losses: ``(N,)`` per-task losses with their graph.
         :param task_weights: ``(N,)`` weights of the tasks.
-        :param actor: whether these are the actor's losses (which may take the one-backward-pass gradients).
+        :param module: the module of the parameters, if it may have kept its forward pass (then the per-task
+            gradients take one backward pass).
         """
         loss = (task_weights * task_losses).sum()
         check_finite(name, loss)
         params = [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
-        if actor:
-            grads = self._actor_per_task_gradients(task_losses, params)
-        else:
-            grads = per_task_gradients(task_losses, params)
+        grads = self._per_task_gradients(module, task_losses, params)
         direction = self.update_hook.combine_gradients(grads, task_weights)
         optimizer.zero_grad()
         assign_flat_gradient(params, direction)
