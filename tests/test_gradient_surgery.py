@@ -21,6 +21,7 @@ from sb3_mtte.common.gradient_surgery import (
 )
 from sb3_mtte.experiments.configs import zoo_hyperparameters
 from sb3_mtte.experiments.variants import CAGRAD_C, VARIANTS
+from sb3_mtte.mtsac import task_steps
 
 ZOO_ONLY = {"n_timesteps", "n_envs", "eval_freq", "eval_episodes", "save_freq"}
 CONFLICTING_3 = np.array([[1.0, 0.2, 0.0], [-0.8, 1.0, 0.3], [0.1, -1.0, 0.5]])
@@ -223,7 +224,8 @@ class RecordingMTSAC(MTSAC):
         loop = np.stack([th.cat([g.flatten() for g in grads]).double().numpy() for grads in loop])
         rng_state = th.get_rng_state()
         before = [p.detach().clone() for p in params]
-        fast_path = module is not None and module.kept_output is not None
+        calls = self.__dict__.setdefault("gradient_calls", [])  # filled by the spies of the test that sets them
+        calls_before = len(calls)
         result = super()._combined_step(optimizer, name, task_losses, task_weights, module)
         grad = [p.grad.clone() for p in params]
         weights = task_weights.double().numpy()
@@ -234,12 +236,22 @@ class RecordingMTSAC(MTSAC):
             "before": before,
             "params": params,
             "grad": grad,
-            "fast_path": fast_path,
+            "gradients_by": calls[calls_before:],
         }
         return result
 
 
 SURGERED = {"actor loss", "critic loss", "entropy coefficient loss"}
+
+
+def spy(function, calls):
+    """``function``, appending its name to ``calls`` at every call."""
+
+    def recorded(*args, **kwargs):
+        calls.append(function.__name__)
+        return function(*args, **kwargs)
+
+    return recorded
 
 
 @pytest.mark.parametrize(
@@ -252,25 +264,27 @@ SURGERED = {"actor loss", "critic loss", "entropy coefficient loss"}
         ("pcgrad", "per_task", "MultiHeadPolicy"),
     ],
 )
-def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, policy):
+def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, policy, monkeypatch):
     """The gradient in ``.grad`` before Adam's step is the method's combination (with the model's c) of per-task
     gradients from a loop of backward passes, and the actor's parameter change is Adam's first step on it; the
     critic and the entropy coefficient are surgered too when shared (``arch``), not when per task (their tasks share
-    no parameter). SAC-MT's actor and the shared critic take the one-backward-pass gradients, a multi-head actor
+    no parameter). SAC-MT's actor and the shared critic take the one-pass gradients, a multi-head actor
     (per-task heads) and beta the generic ones."""
     model = small_model(
         policy, gradient_surgery=method, cagrad_c=0.7, critic_arch=arch, ent_coef_arch=arch, learning_rate=1e-3
     )
     model.learn(800)  # by then the last task's actor gradient conflicts with the others'
-    model.records = {}
+    model.records, model.gradient_calls = {}, []
     model.__class__ = RecordingMTSAC
+    for function in ("per_task_gradients", "per_task_gradients_of_rows"):
+        monkeypatch.setattr(task_steps, function, spy(getattr(task_steps, function), model.gradient_calls))
     fresh_adam = th.optim.Adam(model.actor.parameters(), lr=1e-3)
     model.actor.optimizer = fresh_adam
     model.train(1, 16)
-    fast_paths = {name: record["fast_path"] for name, record in model.records.items()}
-    expected_fast = {"actor loss": policy == "MlpPolicy", "critic loss": True, "entropy coefficient loss": False}
-    assert fast_paths == {name: expected_fast[name] for name in fast_paths}
-    assert model.critic.kept_output is None  # the actor loss's pass through the critic (a constant there) is not kept
+    one_pass = {"actor loss": policy == "MlpPolicy", "critic loss": True, "entropy coefficient loss": False}
+    for name, record in model.records.items():
+        assert record["gradients_by"] == ["per_task_gradients_of_rows" if one_pass[name] else "per_task_gradients"]
+    assert model.actor.kept_rows is None and model.critic.kept_rows is None  # nothing outlives the update
     assert set(model.records) == (SURGERED if arch == "shared" else {"actor loss"})
     for name, record in model.records.items():
         grads, weights = record["loop"], record["w"]  # 1/N for the actor and a shared beta, ones for the critic
@@ -289,6 +303,16 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, 
     record = model.records["actor loss"]
     for before, param, grad in zip(record["before"], record["params"], record["grad"]):
         th.testing.assert_close(param.detach(), before - 1e-3 * grad / (grad.abs() + 1e-8), rtol=1e-5, atol=1e-7)
+
+
+def test_a_one_pass_gradient_refuses_an_optimizer_over_other_parameters():
+    """The one-pass gradients are those of the module's shared network, column by column: an optimizer whose
+    parameters are not that network's, in order, is refused rather than given misplaced gradients."""
+    model = small_model(gradient_surgery="pcgrad", critic_arch="shared", ent_coef_arch="shared")
+    model.learn(100)
+    model.critic.optimizer = th.optim.Adam(list(model.critic.parameters())[::-1], lr=1e-3)
+    with pytest.raises(RuntimeError, match="shared network, in order"):
+        model.train(1, 16)
 
 
 @pytest.mark.parametrize("method", ["pcgrad", "cagrad"])

@@ -90,6 +90,7 @@ def test_an_update_calls_mask_then_weights_then_after_the_optimizer_steps():
     [
         (MTSAC, "MlpPolicy", {}, []),
         (MTSAC, "MlpPolicy", {"gradient_surgery": "cagrad"}, [GradientSurgery]),
+        (MTSAC, "MlpPolicy", {"gradient_surgery": "pcgrad", "critic_arch": "shared"}, [GradientSurgery]),
         (MTSAC, "PaCoPolicy", {"gradient_surgery": "pcgrad"}, [GradientSurgery, CollapseReset]),
         (MTSACTE, "MlpPolicy", {}, [NegativeTransferWeights]),
     ],
@@ -99,5 +100,6 @@ def test_every_algorithm_holds_its_hooks_and_trains(algorithm, policy, kwargs, h
     assert [type(hook) for hook in model.update_hook.hooks] == hooks
     model.learn(72)
     assert model._n_updates > 0
-    assert model.actor.keep_output == (bool(kwargs) and policy == "MlpPolicy")  # the one-pass per-task gradients
-    assert not model.critic.keep_output  # per-task critics: nothing to combine
+    assert model.actor.keep_rows == (bool(kwargs) and policy == "MlpPolicy")  # the one-pass per-task gradients
+    shared_critic = kwargs.get("critic_arch") == "shared"  # else per-task or task-conditioned: nothing to combine
+    assert getattr(model.critic, "keep_rows", False) == shared_critic

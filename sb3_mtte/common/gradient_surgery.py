@@ -3,7 +3,7 @@
 Both methods turn the per-task gradients G (N x P, row i = grad of task i's loss) into one update direction that is a
 linear combination of the rows, d = a^T G. Everything they decide is decided on the N x N Gram matrix G G^T, so the
 pure functions below work on the Gram matrix and return the coefficients a (N,); :func:`surgery_direction` applies
-d = a^T G to the G of :func:`per_task_gradients_of_rows` (a shared network, one backward pass) or
+d = a^T G to the G of :func:`per_task_gradients_of_rows` (a shared network, one more forward and backward pass) or
 :func:`per_task_gradients` (any parameters, N backward passes).
 """
 
@@ -162,7 +162,8 @@ def per_task_gradients_of_rows(
     Task i's loss then reaches the parameters only through task i's rows of ``outputs``, so one backward pass of
     sum_i L_i to ``outputs`` gives every task's cotangent, and one ``vmap`` over the task axis of the
     vector-Jacobian product of the network turns them into per-task gradients (each weight gradient one batched
-    matmul over tasks): the cost of about one backward pass, where :func:`per_task_gradients` pays N of them.
+    matmul over tasks): the cost of one more forward and backward pass of the network, where
+    :func:`per_task_gradients` pays N backward passes.
 
     :param network: the shared network (called on one task's slice of ``inputs``).
     :param inputs: what ``network`` was called on, with the tasks on axis ``task_dim`` (``(N, L, in)`` for a
@@ -185,28 +186,33 @@ def per_task_gradients_of_rows(
 
 
 class KeepsRows:
-    """Mixin of a module that can keep its last differentiable forward pass for the one-pass per-task gradients
-    of :func:`per_task_gradients_of_rows` (gradient surgery on the actor or a shared critic)."""
+    """Mixin of a module that can keep its last differentiable forward pass for the per-task gradients of
+    :func:`per_task_gradients_of_rows` (gradient surgery on the actor or a shared critic).
 
-    keep_output: bool = False
+    Contract: the shared network's parameters reach the step's losses only through the last kept pass (a second
+    differentiable pass before the step replaces the first, whose part of the gradient would be lost), and the step
+    takes the pass (:meth:`take_kept_rows`) whether it succeeds or not.
+    """
+
+    keep_rows: bool = False
     """Whether :meth:`_keep_rows` keeps what it is given (set by the algorithm when it combines gradients)."""
-    kept_output: tuple[th.Tensor, th.Tensor, int] | None = None
+    kept_rows: tuple[th.Tensor, th.Tensor, int] | None = None
     """``(inputs, outputs, task_dim)`` of the last differentiable pass of :attr:`shared_rows_network`."""
 
     @property
     def shared_rows_network(self) -> nn.Module | None:
         """The network the module is, if all its parameters are shared by the tasks and it maps every row on its
-        own (then per-task gradients cost one backward pass); None otherwise."""
+        own (then its per-task gradients cost one more pass of it, not N backward passes); None otherwise."""
         return None
 
     def _keep_rows(self, inputs: th.Tensor, outputs: th.Tensor, task_dim: int = 0) -> None:
         """Keep a pass that differentiates the shared network's parameters (not one where they are constants)."""
-        if self.keep_output and outputs.requires_grad and next(self.shared_rows_network.parameters()).requires_grad:
-            self.kept_output = (inputs, outputs, task_dim)
+        if self.keep_rows and outputs.requires_grad and next(self.shared_rows_network.parameters()).requires_grad:
+            self.kept_rows = (inputs, outputs, task_dim)
 
     def take_kept_rows(self) -> tuple[th.Tensor, th.Tensor, int] | None:
         """The kept pass, once (it holds the graph)."""
-        kept, self.kept_output = self.kept_output, None
+        kept, self.kept_rows = self.kept_rows, None
         return kept
 
 

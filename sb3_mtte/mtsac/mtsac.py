@@ -209,7 +209,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
     def _setup_update_hook(self) -> None:
         self.update_hook = UpdateHooks([*self.update_hooks(), *self.policy.update_hooks()])
         self.update_hook.attach(self)
-        self._keep_rows()
+        self._enable_kept_rows()
 
     def _policy_build_kwargs(self) -> dict[str, Any]:
         """Policy arguments owned by the algorithm (not stored in ``policy_kwargs``)."""

@@ -21,7 +21,6 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_mtte.common.critics import MultiTaskCritic
-from sb3_mtte.common.gradient_surgery import KeepsRows
 from sb3_mtte.common.policies import MultiTaskActor
 from sb3_mtte.mtsac.policies import MTSACPolicy
 
@@ -54,7 +53,7 @@ class TaskConditionedActor(MultiTaskActor):
         return self.net.forward_gather(state, task_ids)[0]
 
 
-class TaskConditionedCritic(KeepsRows, nn.Module):
+class TaskConditionedCritic(nn.Module):
     """Twin Q-networks Q_j(s, a | task) as one task-conditioned network with ``n_critics`` copies.
 
     :param network: the network, built with ``n_critics`` copies, input state + action, output 1.
