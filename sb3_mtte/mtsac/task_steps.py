@@ -36,7 +36,7 @@ class TaskStepMixin:
     def _enable_kept_rows(self) -> None:
         """Let the actor and the critic keep their forward passes for the per-task gradients, when that pays."""
         for module in (self.actor, self.critic):
-            if getattr(module, "shared_rows_network", None) is not None:
+            if isinstance(module, KeepsRows) and module.shared_rows_network is not None:
                 module.keep_rows = self.update_hook.combines_gradients
 
     @staticmethod
