@@ -93,7 +93,11 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
         note += f"; P({stats.ours} > X): probability that a run of {stats.ours} beats a run of X on a task"
     note += ". A run's final success is its final evaluation (success.json) when present, else its last evaluation."
     if published:
-        sources = "".join(f" {label}: {source}." for label, source in paper_sources().items() if label in published)
+        by_source: dict[str, list[str]] = {}
+        for label, source in paper_sources().items():
+            if label in published:
+                by_source.setdefault(source, []).append(label)
+        sources = "".join(f" {' and '.join(labels)}: {source}." for source, labels in by_source.items())
         note += " Published: the paper's Table 1 (Meta-World v2, 5 seeds)" + (f", except{sources}" if sources else ".")
     return note
 
