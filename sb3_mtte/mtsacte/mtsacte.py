@@ -236,12 +236,19 @@ class MTSACTE(MTSAC):
         return [*super().update_hooks(), NegativeTransferWeights()]
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
-        # Iteration k of Algorithm 1 spans vector steps [k H, (k + 1) H): its first update recomputes C_s and w.
-        iteration = (self.num_timesteps // self.n_tasks) // self.iteration_length
-        if self._last_iteration is None or iteration != self._last_iteration:
-            self._last_iteration = iteration
-            self.update_representation(batch_size)
+        # Algorithm 1: iteration k opens with J^rep, then takes vector steps k H + 1, ..., (k + 1) H, each followed by
+        # its update. The update of step (k + 1) H opens iteration k + 1 after it, unless the run ends there; an
+        # iteration not opened yet (the run's first update, a sparser train_freq) opens before the update.
+        step = self.num_timesteps // self.n_tasks
+        if self._last_iteration != (step - 1) // self.iteration_length:
+            self._open_iteration((step - 1) // self.iteration_length, batch_size)
         super().train(gradient_steps, batch_size)
+        if step % self.iteration_length == 0 and self.num_timesteps < self._total_timesteps:
+            self._open_iteration(step // self.iteration_length, batch_size)
+
+    def _open_iteration(self, iteration: int, batch_size: int) -> None:
+        self._last_iteration = iteration
+        self.update_representation(batch_size)
 
     def _representation_batch(self, batch_size: int) -> RepresentationBatch:
         buffer = self.replay_buffer
