@@ -235,16 +235,20 @@ class MTSACTE(MTSAC):
         """The actor's weights w of Eq. 8 from the last recomputation (uniform before the first)."""
         return [*super().update_hooks(), NegativeTransferWeights()]
 
+    # Algorithm 1: iteration k opens with J^rep, then takes vector steps k H + 1, ..., (k + 1) H, each followed by its
+    # update. Once learning has begun, the iteration of the next step opens before that step is taken (so never after
+    # the run's last step); one not open yet at an update (the run's first, a sparser train_freq) opens before it.
+    def collect_rollouts(self, *args, **kwargs):
+        next_iteration = (self.num_timesteps // self.n_tasks) // self.iteration_length
+        if self._last_iteration is not None and next_iteration != self._last_iteration:
+            self._open_iteration(next_iteration, self.batch_size)
+        return super().collect_rollouts(*args, **kwargs)
+
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
-        # Algorithm 1: iteration k opens with J^rep, then takes vector steps k H + 1, ..., (k + 1) H, each followed by
-        # its update. The update of step (k + 1) H opens iteration k + 1 after it, unless the run ends there; an
-        # iteration not opened yet (the run's first update, a sparser train_freq) opens before the update.
-        step = self.num_timesteps // self.n_tasks
-        if self._last_iteration != (step - 1) // self.iteration_length:
-            self._open_iteration((step - 1) // self.iteration_length, batch_size)
+        iteration = (self.num_timesteps // self.n_tasks - 1) // self.iteration_length
+        if iteration != self._last_iteration:
+            self._open_iteration(iteration, batch_size)
         super().train(gradient_steps, batch_size)
-        if step % self.iteration_length == 0 and self.num_timesteps < self._total_timesteps:
-            self._open_iteration(step // self.iteration_length, batch_size)
 
     def _open_iteration(self, iteration: int, batch_size: int) -> None:
         self._last_iteration = iteration
