@@ -588,12 +588,12 @@ def test_collected_actions_use_a_sampled_z(toy_env, monkeypatch):
     standardised noise (z - mean) / std of every acting step is standard normal over the run."""
     model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(learning_starts=40))
     policy, acting, pairs = model.policy, {"on": False}, []
-    original_collect = model.collect_rollouts
+    original_sample_action = model._sample_action
 
-    def collect_rollouts(*args, **kwargs):
+    def sample_action(*args, **kwargs):
         acting["on"] = True
         try:
-            return original_collect(*args, **kwargs)
+            return original_sample_action(*args, **kwargs)
         finally:
             acting["on"] = False
 
@@ -605,7 +605,7 @@ def test_collected_actions_use_a_sampled_z(toy_env, monkeypatch):
         if acting["on"]:
             pairs[-1].append(args[0][:, policy.state_dim :].detach())
 
-    monkeypatch.setattr(model, "collect_rollouts", collect_rollouts)
+    monkeypatch.setattr(model, "_sample_action", sample_action)
     policy.encoder.register_forward_hook(record_encoder)
     policy.actor.net.register_forward_pre_hook(record_actor)
     model.learn(600)
