@@ -68,8 +68,8 @@ def test_attributes_after_recomputation(toy_env):
 def test_representation_schedule(toy_env, monkeypatch, last_step, opened_after):
     """Algorithm 1: iteration k opens with rep_gradient_steps J^rep updates, then takes vector steps kH+1 .. (k+1)H,
     each followed by its update. The run's first update opens its iteration before itself; iteration k opens
-    before step kH+1 is taken, so after the update of step kH, and never after the run's last step. Every J^rep update recomputes mu on a
-    top-K batch; every policy update uses the w of the latest recomputation."""
+    before step kH+1 is taken, so after the update of step kH, and never after the run's last step. Every J^rep
+    update recomputes mu on a top-K batch; every policy update uses the w of the latest recomputation."""
     learning_starts, horizon, rep_steps = 40, 7, 3
     model = MTSACTE(
         "MlpPolicy",

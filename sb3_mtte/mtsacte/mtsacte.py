@@ -239,16 +239,20 @@ class MTSACTE(MTSAC):
     # update. Once learning has begun, the iteration of the next step opens before that step is taken (so never after
     # the run's last step); one not open yet at an update (the run's first, a sparser train_freq) opens before it.
     def collect_rollouts(self, *args, **kwargs):
-        next_iteration = (self.num_timesteps // self.n_tasks) // self.iteration_length
+        next_iteration = self._iteration_of_step(self.num_timesteps // self.n_tasks + 1)
         if self._last_iteration is not None and next_iteration != self._last_iteration:
             self._open_iteration(next_iteration, self.batch_size)
         return super().collect_rollouts(*args, **kwargs)
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
-        iteration = (self.num_timesteps // self.n_tasks - 1) // self.iteration_length
+        iteration = self._iteration_of_step(self.num_timesteps // self.n_tasks)
         if iteration != self._last_iteration:
             self._open_iteration(iteration, batch_size)
         super().train(gradient_steps, batch_size)
+
+    def _iteration_of_step(self, step: int) -> int:
+        """The iteration of Algorithm 1 that vector step ``step`` (counted from 1) belongs to."""
+        return (step - 1) // self.iteration_length
 
     def _open_iteration(self, iteration: int, batch_size: int) -> None:
         self._last_iteration = iteration
