@@ -43,8 +43,17 @@ def package_updates(repeats: int) -> dict[str, float]:
 
     updates = {}
     for critic in CRITICS:
-        model = quiet(MTSAC("MultiHeadPolicy", synthetic_env(N_TASKS), learning_starts=0, critic_arch=critic,
-                            policy_kwargs=dict(net_arch=[WIDTH] * DEPTH), device="cpu", seed=1))
+        model = quiet(
+            MTSAC(
+                "MultiHeadPolicy",
+                synthetic_env(N_TASKS),
+                learning_starts=0,
+                critic_arch=critic,
+                policy_kwargs=dict(net_arch=[WIDTH] * DEPTH),
+                device="cpu",
+                seed=1,
+            )
+        )
         fill_buffer(model, 4 * model.batch_size)
         updates[critic] = lambda model=model: model.train(gradient_steps=1, batch_size=model.batch_size)
     medians = interleaved_medians(updates, repeats)
@@ -75,8 +84,16 @@ def package_end_to_end(critic: str, warmstart: int, warm: int, timed: int) -> fl
             return self.venv.step_wait()
 
     env = StepTimes(make_mt_env("MT10", seed=1))
-    model = MTSAC("MultiHeadPolicy", env, learning_starts=warmstart * N_TASKS, critic_arch=critic,
-                  policy_kwargs=dict(net_arch=[WIDTH] * DEPTH), buffer_size=200_000, device="cpu", seed=1)
+    model = MTSAC(
+        "MultiHeadPolicy",
+        env,
+        learning_starts=warmstart * N_TASKS,
+        critic_arch=critic,
+        policy_kwargs=dict(net_arch=[WIDTH] * DEPTH),
+        buffer_size=200_000,
+        device="cpu",
+        seed=1,
+    )
     first = warmstart + 1 + warm
     last = first + timed
     model.learn((last + 1) * N_TASKS)
@@ -84,7 +101,7 @@ def package_end_to_end(critic: str, warmstart: int, warm: int, timed: int) -> fl
 
 
 def package_side(args: argparse.Namespace) -> dict:
-    import sb3_mtte  # noqa: F401 (first, as users do: its process settings apply before torch loads)
+    import sb3_mtte  # noqa: F401  # first, as users do: its process settings apply before torch loads
     import torch as th
 
     th.set_num_threads(2)
@@ -104,10 +121,15 @@ def run_json(command: list[str]) -> dict:
     return json.loads(lines[-1].removeprefix("RESULT ") if lines else out.stdout)
 
 
+def timing_args(args: argparse.Namespace) -> list[str]:
+    """The options that set what both sides time, as command-line arguments."""
+    options = {"--repeats": args.repeats, "--warmstart": args.warmstart, "--warm": args.warm, "--timed": args.timed}
+    return [text for option, value in options.items() for text in (option, str(value))]
+
+
 def reference_round(args: argparse.Namespace) -> dict:
-    report = run_json([args.peer_python, args.peer_script, "--what", "both", "--variants", "mtmhsac",
-                       "--repeats", str(args.repeats), "--warmstart", str(args.warmstart), "--warm", str(args.warm),
-                       "--timed", str(args.timed)])
+    peer = [args.peer_python, args.peer_script, "--what", "both", "--variants", "mtmhsac"]
+    report = run_json([*peer, *timing_args(args)])
     return {
         "updates_per_s": report["updates"]["updates_per_s"]["peer-mtmhsac-train_iter"],
         "env_steps_per_s": report["e2e"]["env_steps_per_s"],
@@ -116,8 +138,7 @@ def reference_round(args: argparse.Namespace) -> dict:
 
 
 def package_round(args: argparse.Namespace) -> dict:
-    return run_json([sys.executable, __file__, "--side", "package", "--repeats", str(args.repeats),
-                     "--warmstart", str(args.warmstart), "--warm", str(args.warm), "--timed", str(args.timed)])
+    return run_json([sys.executable, __file__, "--side", "package", *timing_args(args)])
 
 
 def summary(rounds: list[dict]) -> dict:
@@ -155,16 +176,28 @@ def main(argv: list[str] | None = None) -> None:
     rounds = []
     for index in range(args.rounds):
         rounds.append({"reference": reference_round(args), "package": package_round(args)})
-        print(f"round {index + 1}: {json.dumps({k: {**v, 'raw': None} for k, v in rounds[-1].items()})}",
-              file=sys.stderr, flush=True)
-    print(json.dumps({
-        "machine": {"cpu_count": os.cpu_count(), "platform": platform.platform(), "python": platform.python_version()},
-        "versions": {name: metadata.version(name) for name in ("sb3-mtte", "torch", "stable-baselines3")},
-        "time": time.strftime("%Y-%m-%d %H:%M:%S"),
-        "settings": vars(args),
-        "medians": summary(rounds),
-        "rounds": rounds,
-    }, indent=1))
+        print(
+            f"round {index + 1}: {json.dumps({k: {**v, 'raw': None} for k, v in rounds[-1].items()})}",
+            file=sys.stderr,
+            flush=True,
+        )
+    print(
+        json.dumps(
+            {
+                "machine": {
+                    "cpu_count": os.cpu_count(),
+                    "platform": platform.platform(),
+                    "python": platform.python_version(),
+                },
+                "versions": {name: metadata.version(name) for name in ("sb3-mtte", "torch", "stable-baselines3")},
+                "time": time.strftime("%Y-%m-%d %H:%M:%S"),
+                "settings": vars(args),
+                "medians": summary(rounds),
+                "rounds": rounds,
+            },
+            indent=1,
+        )
+    )
 
 
 if __name__ == "__main__":

@@ -1,13 +1,14 @@
 """Throughput of training processes that share the machine: one alone, then two side by side.
 
-Each worker is a fresh interpreter started the way users start scripts (no OpenMP or malloc variables of their
-own unless a setting gives some): it builds MTSAC (2 x 400, N = 10, batch 128 per task) on synthetic replay data, waits for a
-common start time and counts updates for ``--seconds``. For every setting the benchmark reports updates/s of one
-process alone, of each of two processes started together, and each one's fraction of the solo figure; rounds
-alternate the settings so that drift of the machine hits them alike (medians over rounds).
+Each worker is a fresh interpreter started the way users start scripts (no OpenMP or malloc variables of their own
+unless a setting gives some): it builds MTSAC (2 x 400, N = 10, batch 128 per task) on synthetic replay data, waits for
+a common start time and counts updates for ``--seconds``. For every setting the benchmark reports updates/s of one
+process alone, of each of two processes started together, and each one's fraction of the solo figure; rounds alternate
+the settings so that drift of the machine hits them alike (medians over rounds).
 
     python benchmarks/bench_sharing.py --rounds 4 --seconds 10 --out docs/results/sharing_cpu.json
-    python benchmarks/bench_sharing.py --setting "libgomp default=GOMP_SPINCOUNT=300000" --setting "spin 3000=GOMP_SPINCOUNT=3000"
+    python benchmarks/bench_sharing.py --setting "libgomp default=GOMP_SPINCOUNT=300000" \
+        --setting "spin 3000=GOMP_SPINCOUNT=3000"
 
 A setting is ``label=VAR=value,VAR=value`` (``label=`` alone: no variables). ``default`` is the package's own
 behaviour; ``torch-first`` is the same with ``import torch`` before the package (library use); ``libgomp default``
@@ -27,8 +28,15 @@ import time
 from pathlib import Path
 
 PROCESS_VARIABLES = (
-    "OMP_NUM_THREADS", "OMP_WAIT_POLICY", "GOMP_SPINCOUNT", "MKL_NUM_THREADS",
-    "SB3_MTTE_MALLOC", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_",
+    "OMP_NUM_THREADS",
+    "OMP_WAIT_POLICY",
+    "GOMP_SPINCOUNT",
+    "MKL_NUM_THREADS",
+    "SB3_MTTE_MALLOC",
+    "MALLOC_MMAP_THRESHOLD_",
+    "MALLOC_TRIM_THRESHOLD_",
+    "MALLOC_TOP_PAD_",
+    "MALLOC_MMAP_MAX_",
 )
 DEFAULT_SETTINGS = (
     "default=",
@@ -40,7 +48,7 @@ DEFAULT_SETTINGS = (
 def worker(start_at: float, seconds: float, torch_first: bool) -> None:
     """Train on synthetic data from ``start_at`` for ``seconds``; print updates/s as JSON."""
     if torch_first:
-        import torch  # noqa: F401  (a script that imports torch before the package)
+        import torch  # noqa: F401  # a script that imports torch before the package
     import sb3_mtte
 
     sys.path.insert(0, str(Path(__file__).parent))

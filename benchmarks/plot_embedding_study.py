@@ -1,6 +1,7 @@
 """Figure of the DEV6 embedding study: the probe of sampled z and E_phi's std over env steps per task.
 
-    python benchmarks/plot_embedding_study.py docs/results/embedding_study_DEV6.json --out docs/figures/embedding_study_DEV6.png
+    python benchmarks/plot_embedding_study.py docs/results/embedding_study_DEV6.json \
+        --out docs/figures/embedding_study_DEV6.png
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+import matplotlib.pyplot as plt
 
 SHOWN = (
     "former_defaults",
@@ -23,7 +24,10 @@ SHOWN = (
     "init_0.01_c_vae_1e-4",
     "mean_gain_50",
 )
-LABELS = {"init_0.01_c_vae_1e-4": " (previous defaults)", "mean_gain_50": " (Meta-World setting now: std 0.01, c_vae 1e-4)"}
+LABELS = {
+    "init_0.01_c_vae_1e-4": " (previous defaults)",
+    "mean_gain_50": " (Meta-World setting now: std 0.01, c_vae 1e-4)",
+}
 
 
 def main() -> None:

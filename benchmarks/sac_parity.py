@@ -263,7 +263,7 @@ def plot(out: Path, figure: Path) -> None:
     fig.suptitle(
         "MTSAC with one task vs SB3 SAC: identical hyperparameters, budget and seeds (0-2); mean ± std", fontsize=10
     )
-    for ax, (env_id, key, title) in zip(axes, PANELS):
+    for ax, (env_id, key, title) in zip(axes, PANELS, strict=True):
         for algo in ALGOS:
             group = [r for r in records if r["env"] == env_id and r["algo"] == algo]
             stats = mean_std_curve(group, key)

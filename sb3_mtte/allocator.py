@@ -31,7 +31,7 @@ def keep_freed_memory() -> bool:
         return False
     try:
         libc = ctypes.CDLL(None)
-        libc.gnu_get_libc_version  # noqa: B018 (present in glibc only; musl has a different mallopt)
+        libc.gnu_get_libc_version  # noqa: B018  # present in glibc only; musl has a different mallopt
     except (OSError, AttributeError):
         return False
     return bool(libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) and bool(

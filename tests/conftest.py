@@ -3,7 +3,7 @@ multi-task env whose episode returns are known in advance."""
 
 from __future__ import annotations
 
-import sb3_mtte  # noqa: F401  (first: the package sets OpenMP's spin-wait before torch loads)
+import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait before torch loads
 
 # isort: split
 
@@ -155,7 +155,7 @@ def stepped_actor(policy, batch, ent_coef, k: int, z: list[th.Tensor], step_size
     grads = th.autograd.grad(loop_objective(policy, policy.actor.dist_params, batch, ent_coef, k, z[k]), params)
     actor_k = copy.deepcopy(policy.actor)
     with th.no_grad():
-        for param, g in zip(actor_k.parameters(), grads):
+        for param, g in zip(actor_k.parameters(), grads, strict=True):
             param.add_(step_size * g)
     return actor_k.dist_params
 
@@ -238,7 +238,7 @@ def loop_rep_gradients(
         for k in harmful:
             j_k = loop_objective(policy, policy.actor.net, batch, ent_coef, k, z[k])
             g_k = th.autograd.grad(j_k, theta, create_graph=True)
-            theta_k = [p + step_size * g for p, g in zip(theta, g_k)]
+            theta_k = [p + step_size * g for p, g in zip(theta, g_k, strict=True)]
 
             def actor_k(x, theta_k=theta_k):
                 return loop_mlp(theta_k, x, policy.actor.net[1])
@@ -259,7 +259,7 @@ def loop_rep_gradients(
         if loss.requires_grad
         else [None] * len(encoder + decoder)
     )
-    grads = [th.zeros_like(p) if g is None else g for p, g in zip(encoder + decoder, grads)]
+    grads = [th.zeros_like(p) if g is None else g for p, g in zip(encoder + decoder, grads, strict=True)]
     return loss.detach(), grads[: len(encoder)], grads[len(encoder) :]
 
 
@@ -392,7 +392,7 @@ def assert_state_equal(a: Any, b: Any, path: str = "") -> None:
             assert_state_equal(a[key], b[key], f"{path}.{key}")
     elif isinstance(a, (list, tuple)):
         assert len(a) == len(b), path
-        for i, (x, y) in enumerate(zip(a, b)):
+        for i, (x, y) in enumerate(zip(a, b, strict=True)):
             assert_state_equal(x, y, f"{path}[{i}]")
     else:
         assert a == b, path

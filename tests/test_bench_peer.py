@@ -8,7 +8,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_peer import main, summary  # noqa: E402
+from bench_peer import main, summary
 
 
 def one_round(ref_upd: float, ref_e2e: float, shared: tuple[float, float], per_task: tuple[float, float]) -> dict:
@@ -30,7 +30,10 @@ def test_medians_and_ratios() -> None:
     medians = summary(rounds)
     assert medians["reference"] == {"updates_per_s": 11.0, "env_steps_per_s": 100.0}
     assert medians["sb3-mtte shared critic"] == {
-        "updates_per_s": 13.0, "env_steps_per_s": 120.0, "updates_ratio": round(13 / 11, 3), "env_steps_ratio": 1.2,
+        "updates_per_s": 13.0,
+        "env_steps_per_s": 120.0,
+        "updates_ratio": round(13 / 11, 3),
+        "env_steps_ratio": 1.2,
     }
     assert medians["sb3-mtte per_task critic"]["env_steps_ratio"] == 0.85
 

@@ -14,8 +14,8 @@ from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parent.parent
 
-# What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.record`, `sb3_mtte.plot` and the `sb3-mtte`
-# command import when they run (the `[ray]` extra of `sweep` is imported only when a sweep runs).
+# What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.record`, `sb3_mtte.plot`
+# and the `sb3-mtte` command import when they run (the `[ray]` extra of `sweep` is imported only when a sweep runs).
 COMMAND_MODULES = [
     "sb3_mtte",
     "sb3_mtte.zoo",
@@ -76,7 +76,8 @@ def import_as_on_a_plain_install(
 ) -> subprocess.CompletedProcess:
     """Import ``modules`` in a fresh interpreter where the ``blocked`` top-level modules cannot be found, as after
     ``pip install -e .`` alone (optional imports guarded by try/except still pass, and a probe with
-    ``importlib.util.find_spec``, as torch makes for optional modules, finds them absent), then run the code ``then``."""
+    ``importlib.util.find_spec``, as torch makes for optional modules, finds them absent), then run the code
+    ``then``."""
     code = (
         "import importlib, importlib.util, sys\n"
         f"BLOCKED = set({blocked!r})\n"

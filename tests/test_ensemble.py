@@ -48,7 +48,7 @@ def test_ensemble_mlp_equals_loop_and_gather_path():
     members = th.tensor([3, 0, 0, 2, 1, 3])
     rows = th.randn(6, 6)
     gathered = net.forward_gather(rows, members)
-    expected_rows = th.stack([member_as_mlp(net, int(m))(r) for r, m in zip(rows, members)])
+    expected_rows = th.stack([member_as_mlp(net, int(m))(r) for r, m in zip(rows, members, strict=True)])
     assert th.allclose(gathered, expected_rows, atol=1e-5)
 
 

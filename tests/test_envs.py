@@ -79,7 +79,7 @@ def test_mt10_infos_and_truncation_at_500(mt10):
     mt10.reset()
     rng = np.random.default_rng(0)
     for t in range(1, 501):
-        obs, rewards, dones, infos = mt10.step(rng.uniform(-1, 1, size=(10, 4)).astype(np.float32))
+        obs, _rewards, dones, infos = mt10.step(rng.uniform(-1, 1, size=(10, 4)).astype(np.float32))
         assert [info["task_index"] for info in infos] == list(range(10))
         assert all(isinstance(info["is_success"], bool) for info in infos)
         if t < 500:
@@ -97,7 +97,7 @@ def test_gym_level_truncation_and_success_flag():
     obs, info = env.reset()
     assert obs.shape == (41,) and info["task_index"] == 0
     for t in range(1, 21):
-        obs, reward, terminated, truncated, info = env.step(env.action_space.sample())
+        obs, _reward, terminated, truncated, info = env.step(env.action_space.sample())
         assert terminated is False
         assert truncated is (t == 20)
     assert env.get_wrapper_attr("task_name") == "reach-v3"
@@ -155,7 +155,7 @@ def test_layout_mismatch_is_reported():
     def drop_last(env_fns):
         return DummyVecEnv(env_fns[:-1])
 
-    with pytest.raises(ValueError, match="one-hot|sub-env"):
+    with pytest.raises(ValueError, match=r"one-hot|sub-env"):
         make_mt_env("toy-conflict", vec_env_cls=drop_last)
 
 

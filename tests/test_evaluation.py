@@ -35,7 +35,8 @@ class EveryOtherEpisode:
             self.episode = np.full(len(observation), -1)
         self.episode += episode_start
         if episode_start.any():
-            self.goals_seen.append([g if s else -1 for g, s in zip(self.env.get_attr("goal_index"), episode_start)])
+            goals = self.env.get_attr("goal_index")
+            self.goals_seen.append([g if s else -1 for g, s in zip(goals, episode_start, strict=True)])
         actions, _ = self.oracle.predict(observation)
         actions[self.episode % 2 == 1] = 0.0
         return actions, None

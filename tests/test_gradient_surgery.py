@@ -301,7 +301,7 @@ def test_the_update_applies_the_surgered_gradient_of_a_plain_loop(method, arch, 
         if name != "entropy coefficient loss":  # (its tasks agree here: see the next test)
             assert np.linalg.norm(expected - weights @ grads) > 1e-3 * np.linalg.norm(expected), name
     record = model.records["actor loss"]
-    for before, param, grad in zip(record["before"], record["params"], record["grad"]):
+    for before, param, grad in zip(record["before"], record["params"], record["grad"], strict=True):
         th.testing.assert_close(param.detach(), before - 1e-3 * grad / (grad.abs() + 1e-8), rtol=1e-5, atol=1e-7)
 
 

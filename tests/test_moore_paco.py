@@ -65,7 +65,7 @@ def loop_task_parameters(net: PaCoNetwork, copy: int, task: int) -> list[tuple[t
             sum(w[k] * weight[copy, k] for k in range(net.n_parameter_sets)),
             sum(w[k] * bias[copy, k, 0] for k in range(net.n_parameter_sets)),
         )
-        for weight, bias in zip(net.weights, net.biases)
+        for weight, bias in zip(net.weights, net.biases, strict=True)
     ]
 
 
@@ -134,7 +134,7 @@ def test_moore_gradients_equal_those_of_the_plain_loop():
     loop = sum(
         loop_moore(net, c, task, row).square().sum() for c in range(2) for task in range(3) for row in x[c, task]
     )
-    for got, expected in zip(fast, th.autograd.grad(loop, params)):
+    for got, expected in zip(fast, th.autograd.grad(loop, params), strict=True):
         assert th.allclose(got, expected, atol=1e-10)
 
 
@@ -227,7 +227,7 @@ class MaskCheckingMTSAC(MTSAC):
         params = [p for group in optimizer.param_groups for p in group["params"]]
         expected = th.autograd.grad((reference_weights * task_losses).sum(), params, retain_graph=True)
         loss = step(task_losses, task_weights)
-        for param, grad in zip(params, expected):
+        for param, grad in zip(params, expected, strict=True):
             assert th.allclose(param.grad, grad, rtol=1e-5, atol=1e-8)
         self.checked.append(optimizer)
         return loss

@@ -84,7 +84,7 @@ def test_actor_step_hook_receives_the_per_task_losses_and_changes_the_update(mon
     th.testing.assert_close(received["weights"], th.full((model.n_tasks,), 1 / model.n_tasks))
     params = list(received["actor"].parameters())
     task_0 = th.autograd.grad(losses[0], params, retain_graph=True)
-    for applied, expected in zip(received["grads"], task_0):
+    for applied, expected in zip(received["grads"], task_0, strict=True):
         th.testing.assert_close(applied, expected, rtol=1e-4, atol=1e-6)
     weighted = th.autograd.grad(sum(losses) / model.n_tasks, params)
     flat = th.cat([g.flatten() for g in task_0])
@@ -339,4 +339,4 @@ def test_the_actor_backward_pass_skips_the_critic_and_changes_no_number(cls):
         model._critic_step = recording_critic_step
         model.train(1, 16)
         after_update = [p.grad for p in model.critic.parameters()]
-        assert any(not th.equal(a, b) for a, b in zip(after_critic_step, after_update)) == changed
+        assert any(not th.equal(a, b) for a, b in zip(after_critic_step, after_update, strict=True)) == changed

@@ -64,7 +64,9 @@ def test_attributes_after_recomputation(toy_env):
     assert len(seen_mu) > 1  # not one constant answer
 
 
-@pytest.mark.parametrize("last_step, opened_after", [(60, [14, 21, 28, 35, 42, 49, 56]), (56, [14, 21, 28, 35, 42, 49])])
+@pytest.mark.parametrize(
+    "last_step, opened_after", [(60, [14, 21, 28, 35, 42, 49, 56]), (56, [14, 21, 28, 35, 42, 49])]
+)
 def test_representation_schedule(toy_env, monkeypatch, last_step, opened_after):
     """Algorithm 1: iteration k opens with rep_gradient_steps J^rep updates, then takes vector steps kH+1 .. (k+1)H,
     each followed by its update. The run's first update opens its iteration before itself; iteration k opens
@@ -223,7 +225,7 @@ def test_top_k_store_holds_the_k_best_episodes(tmp_path):
     other.load_replay_buffer(path)
     for task in range(n_tasks):
         np.testing.assert_array_equal(other.replay_buffer.top_k_returns(task), buffer.top_k_returns(task))
-        for mine, theirs in zip(buffer.top_k_episodes(task), other.replay_buffer.top_k_episodes(task)):
+        for mine, theirs in zip(buffer.top_k_episodes(task), other.replay_buffer.top_k_episodes(task), strict=True):
             assert_state_equal(mine, theirs, f"task {task}")
     # Representation batches from the loaded store only contain top-K transitions.
     batch = other.replay_buffer.sample_top_k(16)
@@ -282,13 +284,14 @@ def test_save_load_restores_everything_and_resumes_exactly(tmp_path):
     assert_state_equal(_nt_state(loaded), saved_nt, "negative transfer")
     for task in range(N_TASKS):
         np.testing.assert_array_equal(loaded.replay_buffer.top_k_returns(task), model.replay_buffer.top_k_returns(task))
-        for mine, theirs in zip(model.replay_buffer.top_k_episodes(task), loaded.replay_buffer.top_k_episodes(task)):
+        saved, restored = model.replay_buffer.top_k_episodes(task), loaded.replay_buffer.top_k_episodes(task)
+        for mine, theirs in zip(saved, restored, strict=True):
             assert_state_equal(mine, theirs)
     np.testing.assert_array_equal(loaded.predict(obs, deterministic=True)[0], saved_actions)
     loaded.set_logger(Logger(folder=None, output_formats=[]))
 
     result_b = resume(loaded)
-    for a, b, name in zip(result_a, result_b, ("params", "optimizers", "negative transfer")):
+    for a, b, name in zip(result_a, result_b, ("params", "optimizers", "negative transfer"), strict=True):
         assert_state_equal(a, b, name)
     # The comparison is not vacuous: the resumed runs moved away from the checkpoint.
     assert any(not th.equal(saved_params[k], result_a[0][k]) for k in saved_params)

@@ -192,7 +192,7 @@ def test_representation_gradients_match_plain_autograd(small_setup, estimator, h
             (enc_grads, expected_enc, policy.encoder),
             (dec_grads, expected_dec, policy.decoder),
         ):
-            for (name, _), reference in zip(module.named_parameters(), expected):
+            for (name, _), reference in zip(module.named_parameters(), expected, strict=True):
                 th.testing.assert_close(grads[name], reference, rtol=1e-8, atol=1e-12)
         if harmful and not use_vae:
             assert float(th.cat([g.flatten() for g in expected_enc]).norm()) > 1e-3  # J^NT does move phi
@@ -318,7 +318,7 @@ def test_vae_objective_and_representation_objective(small_setup):
     # The decoder gradient is c_vae * dJ^VAE/d(decoder); J^NT does not involve the decoder.
     _, _, dec_grads = representation_gradients(objectives, harmful, step_size=STEP, c_vae=c_vae, use_vae=True)
     expected_grads = th.autograd.grad(expected_vae, list(policy.decoder.parameters()))
-    for (name, _), expected in zip(policy.decoder.named_parameters(), expected_grads):
+    for (name, _), expected in zip(policy.decoder.named_parameters(), expected_grads, strict=True):
         th.testing.assert_close(dec_grads[name], c_vae * expected, rtol=1e-9, atol=1e-12)
 
 
@@ -346,7 +346,7 @@ def _assert_gradients_close(model, captured: dict, expected_enc, expected_dec) -
         (model.encoder, captured["enc"], expected_enc),
         (model.decoder, captured["dec"], expected_dec),
     ):
-        for (name, _), reference in zip(module.named_parameters(), expected):
+        for (name, _), reference in zip(module.named_parameters(), expected, strict=True):
             th.testing.assert_close(grads[name].double(), reference, rtol=1e-4, atol=1e-7)
 
 
@@ -536,7 +536,7 @@ def test_q_loss_clip_is_per_sample(toy_env, monkeypatch):
     params = list(reference.critic.parameters())
     per_sample = sum((sample * (sample.detach() <= clip)).sum() / batch_size for sample in losses)
     expected = th.autograd.grad(per_sample, params, retain_graph=True)
-    for applied, reference_grad in zip(captured["grads"], expected):
+    for applied, reference_grad in zip(captured["grads"], expected, strict=True):
         th.testing.assert_close(applied, reference_grad, rtol=1e-4, atol=1e-6)
     # Clipping the batch mean instead gives another gradient.
     batch_mean = sum(sample.mean() * (sample.mean().detach() <= clip) for sample in losses)

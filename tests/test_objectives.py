@@ -266,7 +266,7 @@ def test_actor_loss_is_the_weighted_sum_of_task_losses(monkeypatch):
         return th.autograd.grad(loss, list(actor_before.parameters()))
 
     expected = reference_gradient(weights)
-    for applied, reference in zip(captured["grads"], expected):
+    for applied, reference in zip(captured["grads"], expected, strict=True):
         th.testing.assert_close(applied, reference, rtol=1e-4, atol=1e-6)
     # Uniform weights give a clearly different gradient: the comparison sees the weights.
     uniform = th.cat([g.flatten() for g in reference_gradient([0.25] * 4)])

@@ -81,7 +81,7 @@ def test_one_hot_wrapper_appends_the_one_hot_and_keeps_the_env_seeding():
     obs, info = wrapped.reset(seed=5)
     assert np.array_equal(obs, np.append(plain.reset(seed=5)[0], np.float32(1.0))) and info["task_index"] == 0
     for action in np.linspace(-2.0, 2.0, 5, dtype=np.float32)[:, None]:
-        obs, reward, terminated, truncated, info = wrapped.step(action)
+        obs, reward, _terminated, _truncated, info = wrapped.step(action)
         expected = plain.step(action)
         assert obs.dtype == np.float32 and np.array_equal(obs[:-1], expected[0]) and obs[-1] == 1.0
         assert reward == expected[1] and info["task_index"] == 0 and "is_success" not in info
@@ -181,7 +181,7 @@ def matched_tensors(mtsac: MTSAC, sac: SAC) -> Iterator[tuple[str, th.Tensor, th
         (th.cat([sac.actor.mu.weight, sac.actor.log_std.weight]), th.cat([sac.actor.mu.bias, sac.actor.log_std.bias]))
     )
     assert len(mine) == len(theirs)
-    for k, ((weight, bias), (sac_weight, sac_bias)) in enumerate(zip(mine, theirs)):
+    for k, ((weight, bias), (sac_weight, sac_bias)) in enumerate(zip(mine, theirs, strict=True)):
         yield f"actor.{k}.weight", weight, sac_weight
         yield f"actor.{k}.bias", bias, sac_bias
     for name in ("critic", "critic_target"):

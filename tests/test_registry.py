@@ -127,7 +127,7 @@ def test_the_family_uses_its_weights_in_the_actor_update(registered, monkeypatch
     monkeypatch.setattr(model, "_actor_step", recording_actor_step)
     model.learn(80)
     assert len(received) == len(RECORDS) > 0
-    for weights, record in zip(received, RECORDS):
+    for weights, record in zip(received, RECORDS, strict=True):
         assert th.equal(weights, record["weights"])
 
 

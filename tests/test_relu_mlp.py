@@ -15,10 +15,14 @@ from sb3_mtte.common.relu_mlp import TESTED_TORCH, fused_relu_mlp
 def loop_forward(weights, biases, x, stacked: bool, relu_last: bool) -> th.Tensor:
     """Layer by layer, member by member for an ensemble, with plain matmuls."""
     if stacked:
-        return th.stack([loop_forward([w[e] for w in weights], [b[e, 0] for b in biases], x[e], False, relu_last)
-                         for e in range(x.shape[0])])
+        return th.stack(
+            [
+                loop_forward([w[e] for w in weights], [b[e, 0] for b in biases], x[e], False, relu_last)
+                for e in range(x.shape[0])
+            ]
+        )
     h = x
-    for index, (w, b) in enumerate(zip(weights, biases)):
+    for index, (w, b) in enumerate(zip(weights, biases, strict=True)):
         h = h @ w.t() + b
         if relu_last or index < len(weights) - 1:
             h = th.where(h > 0, h, th.zeros_like(h))
@@ -122,7 +126,8 @@ def test_torch_func_transforms_take_the_layer_by_layer_graph():
     xs = th.randn(3, 2, 4, dtype=th.double)
     per_row = vmap(grad(lambda p, x: th.func.functional_call(net, p, (x,)).sum()), in_dims=(None, 0))(params, xs)
     for i in range(3):
-        expected = th.autograd.grad(loop_forward(*params_of(net, False), xs[i], False, False).sum(), list(params.values()))
+        output = loop_forward(*params_of(net, False), xs[i], False, False).sum()
+        expected = th.autograd.grad(output, list(params.values()))
         for name, e in zip(params, expected, strict=True):
             th.testing.assert_close(per_row[name][i], e, rtol=1e-12, atol=1e-12)
 

@@ -192,7 +192,7 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
 
 
 def test_every_algorithm_keeps_one_distinct_style_in_every_figure(tmp_path, monkeypatch):
-    labels = variant_labels() + ["Mine"]
+    labels = [*variant_labels(), "Mine"]
     groups = {
         label: [plot_runs.load_run(make_synthetic_run(tmp_path, f"algo{i}", label, 0, 0.5, nt=False))]
         for i, label in enumerate(labels)
@@ -294,7 +294,7 @@ def test_records_redraw_the_table_and_success_curves_of_their_run_folders(tmp_pa
     ):
         run = make_synthetic_run(runs, algo, label, seed, final, nt=algo == "mtsacte")
         rates = np.round(np.linspace(0, final, 10), 2).tolist()
-        (run / "success.json").write_text(json.dumps({"mean": final, "per_task": dict(zip(names, rates))}))
+        (run / "success.json").write_text(json.dumps({"mean": final, "per_task": dict(zip(names, rates, strict=True))}))
     monkeypatch.chdir(tmp_path)
     paths = records_cli.main([str(runs)])  # default --out: docs/records/<env id>/<algo>_seed<k>.json
     assert sorted(str(p) for p in paths) == [

@@ -80,9 +80,10 @@ def test_an_update_calls_mask_then_weights_then_after_the_optimizer_steps():
     recorder = model.update_hook.hooks[-1]
     assert [name for name, _ in recorder.calls] == ["loss_mask", "task_weights", "after_update"] * model._n_updates
     masked, weighted, after = recorder.calls[0::3], recorder.calls[1::3], recorder.calls[2::3]
-    for (_, at_mask), (_, at_weights), (_, at_end) in zip(masked, weighted, after):
-        assert all(th.equal(a, b) for a, b in zip(at_mask, at_weights))  # the actor had not stepped yet
-        assert all(not th.equal(a, b) for a, b in zip(at_weights, at_end))  # it stepped before after_update
+    for (_, at_mask), (_, at_weights), (_, at_end) in zip(masked, weighted, after, strict=True):
+        assert all(th.equal(a, b) for a, b in zip(at_mask, at_weights, strict=True))  # the actor had not stepped yet
+        # it stepped before after_update
+        assert all(not th.equal(a, b) for a, b in zip(at_weights, at_end, strict=True))
 
 
 @pytest.mark.parametrize(

@@ -204,7 +204,7 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
         assert np.array_equal(ea["success_rate"], eb["success_rate"])
     rows_a, rows_b = _progress(run_a), _progress(run_b)
     assert [r["time/total_timesteps"] for r in rows_a] == [r["time/total_timesteps"] for r in rows_b]
-    for row_a, row_b in zip(rows_a, rows_b):
+    for row_a, row_b in zip(rows_a, rows_b, strict=True):
         for key, value in row_a.items():
             if not key.startswith("time/"):
                 assert row_b.get(key) == value, (row_a["time/total_timesteps"], key)

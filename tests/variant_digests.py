@@ -14,7 +14,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import sb3_mtte  # noqa: F401  (first: the package sets OpenMP's spin-wait before torch loads)
+import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait before torch loads
 
 # isort: split
 

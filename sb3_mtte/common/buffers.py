@@ -76,8 +76,8 @@ class MultiTaskReplayBuffer(ReplayBuffer):
 
     Build it with ``n_envs`` equal to the number of tasks, sub-env i being task i (SB3 does this when it
     is passed as ``replay_buffer_class``; SB3's own ``train`` methods expect flat batches, so train with
-    :class:`~sb3_mtte.MTSAC` or :class:`~sb3_mtte.MTSACTE`). ``buffer_size`` is the total over tasks, as in SB3: each task
-    gets ``buffer_size // n_envs`` rows.
+    :class:`~sb3_mtte.MTSAC` or :class:`~sb3_mtte.MTSACTE`). ``buffer_size`` is the total over tasks, as in SB3:
+    each task gets ``buffer_size // n_envs`` rows.
 
     Top-K store: when an episode of task i ends (termination or truncation, a truncated episode counts as
     complete) and its return is strictly greater than the worst stored return of that task (or fewer than

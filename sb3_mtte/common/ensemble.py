@@ -9,6 +9,7 @@ from torch import nn
 from torch.func import functional_call, vmap
 
 from sb3_mtte.common.relu_mlp import fused_relu_mlp_applies, relu_mlp
+import itertools
 
 
 class EnsembleLinear(nn.Module):
@@ -71,13 +72,13 @@ class EnsembleMLP(nn.Module):
     ) -> None:
         super().__init__()
         sizes = [in_features, *hidden_sizes, out_features]
-        self.layers = nn.ModuleList(EnsembleLinear(n_members, a, b) for a, b in zip(sizes[:-1], sizes[1:]))
+        self.layers = nn.ModuleList(EnsembleLinear(n_members, a, b) for a, b in itertools.pairwise(sizes))
         self.activation = activation_fn()
 
     def forward(self, x: th.Tensor) -> th.Tensor:
         """:param x: ``(E, B, in)``. :return: ``(E, B, out)``."""
         if type(self.activation) is nn.ReLU and fused_relu_mlp_applies(x, stacked=True):
-            weights, biases = zip(*((layer.weight, layer.bias) for layer in self.layers))
+            weights, biases = zip(*((layer.weight, layer.bias) for layer in self.layers), strict=True)
             return relu_mlp(x, list(weights), list(biases), stacked=True, relu_last=False)
         for layer in self.layers[:-1]:
             x = self.activation(layer(x))
@@ -128,7 +129,7 @@ def mlp(in_features: int, hidden_sizes: list[int], out_features: int, activation
     """Plain MLP with ``activation_fn`` between layers and a linear output (``out_features < 1``: no output layer)."""
     sizes = [in_features, *hidden_sizes]
     modules: list[nn.Module] = []
-    for a, b in zip(sizes[:-1], sizes[1:]):
+    for a, b in itertools.pairwise(sizes):
         modules += [nn.Linear(a, b), activation_fn()]
     if out_features > 0:
         modules.append(nn.Linear(sizes[-1], out_features))

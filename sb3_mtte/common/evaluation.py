@@ -56,7 +56,7 @@ class SuccessResult:
         """JSON-friendly form: ``{"mean": m, "per_task": {name: rate}}``."""
         return {
             "mean": self.mean,
-            "per_task": {name: float(rate) for name, rate in zip(self.task_names, self.success_rate)},
+            "per_task": {name: float(rate) for name, rate in zip(self.task_names, self.success_rate, strict=True)},
         }
 
 
@@ -193,7 +193,7 @@ class MultiTaskEvalCallback(BaseCallback):
         self.evaluations_timesteps.append(self.num_timesteps)
         self.evaluations_success.append(result.success_rate)
         self.logger.record("eval/success_rate", result.mean)
-        for i, (name, rate) in enumerate(zip(result.task_names, result.success_rate)):
+        for i, (name, rate) in enumerate(zip(result.task_names, result.success_rate, strict=True)):
             self.logger.record(task_log_key("eval/success", i, name), float(rate))
         if self.verbose >= 1:
             print(f"Eval num_timesteps={self.num_timesteps}, mean success rate={result.mean:.3f}")

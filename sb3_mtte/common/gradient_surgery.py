@@ -148,7 +148,7 @@ def per_task_gradients(task_losses: th.Tensor, params: list[th.Tensor]) -> th.Te
     grads = th.autograd.grad(task_losses, params, grad_outputs=identity, is_grads_batched=True, allow_unused=True)
     flat = [
         th.zeros(n_tasks, p.numel(), dtype=p.dtype, device=p.device) if g is None else g.reshape(n_tasks, -1)
-        for g, p in zip(grads, params)
+        for g, p in zip(grads, params, strict=True)
     ]
     return th.cat(flat, dim=1)
 

@@ -93,7 +93,7 @@ class _ReLUMLP(th.autograd.Function):
     def forward(ctx, x: th.Tensor, stacked: bool, relu_last: bool, *params: th.Tensor) -> th.Tensor:
         weights, biases = params[0::2], params[1::2]
         layer_inputs, h = [], x
-        for index, (weight, bias) in enumerate(zip(weights, biases)):
+        for index, (weight, bias) in enumerate(zip(weights, biases, strict=True)):
             layer_inputs.append(h)
             h = _affine(h, weight, bias, stacked)
             if relu_last or index < len(weights) - 1:

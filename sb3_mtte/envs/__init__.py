@@ -114,10 +114,10 @@ class _monitored:
 
 
 __all__ = [
+    "METAWORLD_BENCHMARKS",
     "MT10_TASKS",
     "MT20_TASKS",
     "MT50_TASKS",
-    "METAWORLD_BENCHMARKS",
     "TOY_BENCHMARKS",
     "BenchmarkSpec",
     "MetaWorldExpertPolicy",

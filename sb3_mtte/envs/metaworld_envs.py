@@ -236,5 +236,5 @@ class MetaWorldExpertPolicy:
         tasks = observation[:, -n_tasks:].argmax(axis=1)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the experts warn about their own gains on every call
-            actions = [self.experts[t].get_action(row[:-n_tasks]) for t, row in zip(tasks, observation)]
+            actions = [self.experts[t].get_action(row[:-n_tasks]) for t, row in zip(tasks, observation, strict=True)]
         return np.clip(np.stack(actions), -1.0, 1.0).astype(np.float32), None

@@ -115,7 +115,7 @@ class PointGoalEnv(gym.Env):
     :param render_mode: None or ``"rgb_array"`` (a small top-down image).
     """
 
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}
+    metadata = {"render_modes": ["rgb_array"], "render_fps": 20}  # noqa: RUF012  # as gymnasium.Env declares it
 
     def __init__(
         self,

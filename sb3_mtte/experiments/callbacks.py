@@ -52,7 +52,7 @@ class EpisodeReporter(VecEnvWrapper):
     def close(self) -> None:
         if any(self.successes):
             print("Success rate per task (episodes finished):")
-            for name, results in zip(self.task_names, self.successes):
+            for name, results in zip(self.task_names, self.successes, strict=True):
                 if results:
                     print(f"  {name:<28} {100 * np.mean(results):5.1f}% ({len(results)})")
         unfinished = [i for i, results in enumerate(self.successes) if not results and self.lengths[i] > 0]

@@ -1,10 +1,10 @@
 """Env ids of the benchmarks and the VecEnv "class" that makes sub-env i run task i.
 
-Env ids ``MT10``, ``MT20``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree`` (and ``toy-conflict-<N>``), each also with a
-budget suffix (``MT10-smoke``): the suffix picks another entry of the hyperparameter file and names the run folder,
-the benchmark is the same. rl-zoo builds every sub-env with the same constructor; :class:`MultiTaskVecEnvFactory`
-(the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's ``--vec-env`` choice inside) tells
-constructor i which task to build.
+Env ids ``MT10``, ``MT20``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree`` (and
+``toy-conflict-<N>``), each also with a budget suffix (``MT10-smoke``): the suffix picks another entry of the
+hyperparameter file and names the run folder, the benchmark is the same. rl-zoo builds every sub-env with the same
+constructor; :class:`MultiTaskVecEnvFactory` (the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's
+``--vec-env`` choice inside) tells constructor i which task to build.
 """
 
 from __future__ import annotations

@@ -50,7 +50,7 @@ def format_table(result: SuccessResult, title: str | None = None) -> str:
     lines = [] if title is None else [title, ""]
     lines.append(f"| {'#':>2} | {'task':<{width}} | success |")
     lines.append(f"|---:|:{'-' * (width + 1)}|--------:|")
-    for i, (name, rate) in enumerate(zip(result.task_names, result.success_rate)):
+    for i, (name, rate) in enumerate(zip(result.task_names, result.success_rate, strict=True)):
         lines.append(f"| {i:>2} | {name:<{width}} | {100 * rate:6.1f}% |")
     lines.append(f"|    | {'mean':<{width}} | {100 * result.mean:6.1f}% |")
     return "\n".join(lines)

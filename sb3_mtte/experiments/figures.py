@@ -200,7 +200,7 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
         runs = with_loss[label]
         names = runs[0].task_names
         fig, axes = panel_grid(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
-        for ax, i in zip(axes, _selected_tasks(names, opts.tasks)):
+        for ax, i in zip(axes, _selected_tasks(names, opts.tasks), strict=True):
             success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
             loss = _mean_series(runs, lambda r, i=i: task_scalar(r, "train/critic_loss", i), opts)
             _twin_panel(ax, success, loss, "soft Bellman error")
@@ -214,7 +214,7 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
     labels = label_order(list(with_loss))
     fig = new_figure(7, 2.8 * len(labels) + 0.6)
     axes = fig.subplots(len(labels), 1, squeeze=False)[:, 0]
-    for ax, label in zip(axes, labels):
+    for ax, label in zip(axes, labels, strict=True):
         success = _mean_series(with_loss[label], success_curve, opts)
         twin = _twin_panel(ax, success, _mean_series(with_loss[label], _mean_critic_loss, opts), "soft Bellman error")
         ax.set_ylabel("success rate (%)", color="tab:blue", fontsize=8)
@@ -243,7 +243,7 @@ def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
     names = runs[0].task_names
     tasks = _selected_tasks(names, opts.tasks)
     fig, axes = panel_grid(len(tasks), 4, 3.6, 2.8)
-    for ax, i in zip(axes, tasks):
+    for ax, i in zip(axes, tasks, strict=True):
 
         def frequency(run: Run, i: int = i) -> Series:
             window = opts.freq_window_episodes * episode_length(run) * run.n_tasks
@@ -299,7 +299,7 @@ def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
     times = _matrix_times(runs, opts)
     side = 3.2 + 0.25 * len(names)
     fig = new_figure(side * len(times) + 0.8, side)
-    for ax, t in zip(fig.subplots(1, len(times), squeeze=False)[0], times):
+    for ax, t in zip(fig.subplots(1, len(times), squeeze=False)[0], times, strict=True):
         matrices = []
         for run in runs:
             steps = np.array([r["timesteps"] for r in run.nt_records], float) * opts.xscale(run)

@@ -57,14 +57,14 @@ def package_versions() -> dict[str, str | None]:
     for name in VERSION_PACKAGES:
         try:
             module = importlib.import_module(name)
-        except Exception:  # noqa: BLE001 - a missing or broken optional package is recorded as None
+        except Exception:  # a missing or broken optional package is recorded as None
             versions[name] = None
             continue
         version = getattr(module, "__version__", None)
         if version is None:
             try:
                 version = dist_version(name.replace("_", "-"))
-            except Exception:  # noqa: BLE001
+            except Exception:
                 version = None
         versions[name] = None if version is None else str(version)
     return versions

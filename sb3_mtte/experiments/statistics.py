@@ -55,7 +55,7 @@ def _per_label(scores: Mapping[str, Any], draw: Callable[[dict], tuple[dict, dic
     for label, label_scores in scores.items():
         with seeded(seed):
             drawn = draw({label: label_scores})
-        for out, by_label in zip(estimates, drawn):
+        for out, by_label in zip(estimates, drawn, strict=True):
             out[label] = by_label[label]
     return estimates
 

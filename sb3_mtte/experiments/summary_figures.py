@@ -100,7 +100,7 @@ def plot_success(bench: str, bands: Mapping[str, CurveBand], opts: PlotOptions, 
     axes = fig.subplots(1, len(panels), sharey=True, squeeze=False)[0]
     styles = algorithm_styles(list(bands))
     top = max([25.0] + [100 * float(np.max(band.estimates["high"])) for band in bands.values()])
-    for ax, (title, labels) in zip(axes, panels):
+    for ax, (title, labels) in zip(axes, panels, strict=True):
         for label in labels:
             est = bands[label].estimates
             _band(
@@ -131,7 +131,7 @@ def plot_per_task(
     fig, axes = panel_grid(len(task_names), 5, 3.2, 2.6)
     styles = algorithm_styles(list(bands))
     shown = success_panels(list(bands))[0][1]
-    for i, (ax, name) in enumerate(zip(axes, task_names)):
+    for i, (ax, name) in enumerate(zip(axes, task_names, strict=True)):
         for label in shown:
             est = bands[label].estimates
             _band(

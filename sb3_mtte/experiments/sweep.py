@@ -173,7 +173,7 @@ def run_sweep(args: argparse.Namespace, extra: Sequence[str]) -> list[dict[str, 
         ),
     )
     results = tuner.fit()
-    for trial, result in zip(trials, _results_by_trial(results, trials)):
+    for trial, result in zip(trials, _results_by_trial(results, trials), strict=True):
         trial["status"] = "error" if result is None or result.error else "done"
         if result is not None and result.error:
             trial["error"] = str(result.error).splitlines()[0][:500]

@@ -107,6 +107,12 @@ _PACO = "dict(net_arch=[{0}, {0}], n_parameter_sets=5, task_loss_threshold=3000.
 METAWORLD_ENTRIES = ("MT*", "DEV6*")
 """Patterns of the Meta-World env entries of the hyperparameter files (the toy entries are ``toy-*``)."""
 
+
+def _on_metaworld(policy_kwargs: str) -> dict[str, dict[str, str]]:
+    """The same ``policy_kwargs`` for every Meta-World entry, each in a dict of its own."""
+    return {entry: {"policy_kwargs": policy_kwargs} for entry in METAWORLD_ENTRIES}
+
+
 for _variant in (
     Variant("mtsac_ind", "SAC-Ind", Build("mtsac", "IndependentPolicy"), paper={"MT10": 94.0, "MT20": 94.1}),
     Variant("mtsac_mt", "SAC-MT", Build("mtsac"), paper={"MT10": 74.3, "MT20": 56.2}),
@@ -118,9 +124,7 @@ for _variant in (
             "mtsac",
             "SoftModularPolicy",
             env_overrides={
-                **dict.fromkeys(
-                    METAWORLD_ENTRIES, {"policy_kwargs": f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"}
-                ),
+                **_on_metaworld(f"dict(net_arch=[400, 400], {_SOFT_MODULAR.format(4, 128)})"),
                 "toy-*": {"policy_kwargs": f"dict(net_arch=[64, 64], {_SOFT_MODULAR.format(2, 32)})"},
             },
         ),
@@ -165,7 +169,7 @@ for _variant in (
             "mtsac",
             "MOOREPolicy",
             env_overrides={
-                **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _MOORE.format(400)}),
+                **_on_metaworld(_MOORE.format(400)),
                 "toy-*": {"policy_kwargs": _MOORE.format(64)},
             },
         ),
@@ -179,7 +183,7 @@ for _variant in (
             "mtsac",
             "PaCoPolicy",
             env_overrides={
-                **dict.fromkeys(METAWORLD_ENTRIES, {"policy_kwargs": _PACO.format(400)}),
+                **_on_metaworld(_PACO.format(400)),
                 "toy-*": {"policy_kwargs": _PACO.format(64)},
             },
         ),

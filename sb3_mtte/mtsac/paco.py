@@ -81,7 +81,7 @@ class PaCoNetwork(nn.Module):
 
     def reset_parameters(self) -> None:
         """Every set like ``nn.Linear``; w He-uniform, as a linear layer on the one-hot (fan-in N)."""
-        for weight, bias in zip(self.weights, self.biases):
+        for weight, bias in zip(self.weights, self.biases, strict=True):
             bound = 1.0 / math.sqrt(weight.shape[-2])
             nn.init.uniform_(weight, -bound, bound)
             nn.init.uniform_(bias, -bound, bound)
@@ -91,7 +91,7 @@ class PaCoNetwork(nn.Module):
         """Per layer, every task's (weight ``(C, N, in, out)``, bias ``(C, N, 1, out)``)."""
         return [
             (compose_parameters(w, self.task_weights), compose_parameters(b, self.task_weights))
-            for w, b in zip(self.weights, self.biases)
+            for w, b in zip(self.weights, self.biases, strict=True)
         ]
 
     def forward(self, x: th.Tensor) -> th.Tensor:

@@ -127,7 +127,8 @@ class MTSACTE(MTSAC):
     ) -> None:
         if policy_kwargs and "rep_learning_rate" in policy_kwargs:
             raise ValueError(
-                "rep_learning_rate is an argument of MTSACTE (MTSACTE(..., rep_learning_rate=...)), not of policy_kwargs."
+                "rep_learning_rate is an argument of MTSACTE (MTSACTE(..., rep_learning_rate=...)), "
+                "not of policy_kwargs."
             )
         if top_k < 1:
             raise ValueError(f"top_k (K) must be at least 1, got {top_k}.")
@@ -181,7 +182,8 @@ class MTSACTE(MTSAC):
         self.nt_measure = nt_measure
         self._last_iteration: int | None = None
         self.negative_transfer_records: list[dict[str, Any]] = []
-        """Records of ``negative_transfer.jsonl`` (one per iteration) until :class:`NegativeTransferLogCallback` writes them."""
+        """Records of ``negative_transfer.jsonl`` (one per iteration) until :class:`NegativeTransferLogCallback`
+        writes them."""
         if _init_setup_model:
             self._setup_model()
 
