@@ -21,6 +21,7 @@ SMALL = dict(net_arch=[32, 32])
 def small_model(policy="MlpPolicy", seed=0, env=None, cls=MTSAC, **kwargs):
     env = env or make_mt_env("toy-conflict", seed=seed)
     kwargs.setdefault("policy_kwargs", SMALL)
+    kwargs.setdefault("device", "cpu")
     if policy == "SoftModularPolicy":
         kwargs["policy_kwargs"] = {
             **kwargs["policy_kwargs"],
@@ -44,7 +45,9 @@ class FirstTaskOnlyMTSAC(MTSAC):
             "actor": copy.deepcopy(self.actor),
             "critic": copy.deepcopy(self.critic),
         }
-        loss = super()._actor_step(task_losses, th.eye(self.n_tasks, dtype=task_weights.dtype)[0])
+        loss = super()._actor_step(
+            task_losses, th.eye(self.n_tasks, dtype=task_weights.dtype, device=task_weights.device)[0]
+        )
         self.received["grads"] = [p.grad.detach().clone() for p in self.actor.parameters()]
         return loss
 
@@ -151,7 +154,7 @@ def test_save_load_round_trip(policy, tmp_path):
     model = small_model(policy, q_loss_clip=2000.0)
     model.learn(300)
     model.save(tmp_path / "model")
-    loaded = MTSAC.load(tmp_path / "model", env=None)
+    loaded = MTSAC.load(tmp_path / "model", env=None, device="cpu")
     assert loaded.replay_buffer is None and loaded.n_tasks == 4
     for key, value in all_params(model).items():
         assert th.equal(value, loaded.policy.state_dict()[key]), key
@@ -187,7 +190,7 @@ def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(kwargs, tmp_p
     model.train(gradient_steps=2, batch_size=16)
     expected = all_params(model)
 
-    resumed = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0))
+    resumed = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cpu")
     assert {key: getattr(resumed, key) for key in kwargs} == kwargs
     resumed.load_replay_buffer(tmp_path / "buffer")
     resumed.set_logger(model.logger)
