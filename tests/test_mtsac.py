@@ -260,6 +260,41 @@ def test_logs_per_task_success_and_critic_loss(tmp_path):
     assert "rollout/success_rate" in header and "train/ent_coef" in header
 
 
+def _logged(tmp_path, key):
+    import csv
+
+    with open(tmp_path / "progress.csv") as file:
+        return [float(row[key]) for row in csv.DictReader(file) if row.get(key)]
+
+
+@pytest.mark.parametrize("q_loss_clip, fraction", [(None, None), (1e-12, 1.0), (1e12, 0.0)])
+def test_logs_the_share_of_clipped_q_samples_only_with_a_clip(tmp_path, q_loss_clip, fraction):
+    from stable_baselines3.common.logger import configure
+
+    model = small_model(q_loss_clip=q_loss_clip)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    model.learn(400, log_interval=1)
+    header = (tmp_path / "progress.csv").read_text().splitlines()[0].split(",")
+    if fraction is None:
+        assert "train/q_loss_clip_fraction" not in header
+    else:
+        values = _logged(tmp_path, "train/q_loss_clip_fraction")
+        assert values and all(value == fraction for value in values)
+
+
+def test_clip_fraction_is_the_mean_over_the_updates_between_dumps(tmp_path):
+    from stable_baselines3.common.logger import configure
+
+    model = small_model(q_loss_clip=1.0)
+    model.set_logger(configure(str(tmp_path), ["csv"]))
+    n = model.n_tasks
+    for fractions in ([0.0, 0.5, 1.0, 0.5], [0.25, 0.25, 0.25, 0.25]):
+        stats = {"actor_loss": np.float32(0), "critic_loss": np.zeros(n), "ent_coef": np.ones(n)}
+        model._record_train_stats({**stats, "q_loss_clip_fraction": np.array(fractions)})
+    model.logger.dump(0)
+    assert _logged(tmp_path, "train/q_loss_clip_fraction") == [pytest.approx((0.5 + 0.25) / 2)]
+
+
 def test_logs_are_dumped_once_per_step_when_several_sub_envs_end_together(tmp_path):
     """The 4 sub-envs end their episodes at the same step: with log_interval=1 SB3 would dump 4 tables there."""
     from stable_baselines3.common.logger import configure

@@ -20,7 +20,7 @@ from conftest import (
 )
 
 from sb3_mtte import MTSACTE, make_mt_env
-from sb3_mtte.common.losses import clipped_soft_q_loss, sac_task_objective
+from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.mtsacte.objectives import (
     gaussian_kl_to_standard_normal,
     negative_transfer_measure,
@@ -313,6 +313,20 @@ def test_clipped_soft_q_loss_matches_loop_and_zeroes_large_samples():
     th.testing.assert_close(gradient[~above], delta[~above] / batch)
     # q_loss_clip=None is the plain loss (Eq. 15), and a huge clip changes nothing.
     th.testing.assert_close(clipped_soft_q_loss(q_values, target, 1e12), plain)
+
+
+def test_clipped_sample_fraction_counts_the_samples_eq16_drops_per_task():
+    gen = th.Generator().manual_seed(1)
+    n_critics, n, batch, clip = 2, 4, 5, 2.0
+    q_values = 3 * th.randn(n_critics, n, batch, generator=gen, dtype=th.float64)
+    target = 3 * th.randn(n, batch, generator=gen, dtype=th.float64)
+    expected = th.zeros(n, dtype=th.float64)
+    for i in range(n):
+        for c in range(n_critics):
+            for b in range(batch):
+                expected[i] += (0.5 * float(q_values[c, i, b] - target[i, b]) ** 2 > clip) / (n_critics * batch)
+    assert len(set(expected.tolist())) > 1  # the tasks differ, so a mean over the wrong axis fails
+    th.testing.assert_close(clipped_sample_fraction(q_values, target, clip), expected.float())
 
 
 # ------------------------------------------------------------------------------------ VAE (Eq. 13-14)

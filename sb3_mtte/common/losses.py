@@ -5,6 +5,16 @@ from __future__ import annotations
 import torch as th
 
 
+def soft_bellman_sample_loss(q_values: th.Tensor, target_q: th.Tensor) -> th.Tensor:
+    """J^Q = 1/2 (Q(s,a) - y)^2 of every critic and sample (Eq. 15).
+
+    :param q_values: ``(n_critics, N, L)`` current Q-values.
+    :param target_q: ``(N, L)`` soft targets y (no gradient).
+    :return: ``(n_critics, N, L)``.
+    """
+    return 0.5 * (q_values - target_q.unsqueeze(0)).pow(2)
+
+
 def clipped_soft_q_loss(q_values: th.Tensor, target_q: th.Tensor, clip: float | None) -> th.Tensor:
     """Per-task clipped soft Bellman loss, Eq. 15-16.
 
@@ -16,10 +26,23 @@ def clipped_soft_q_loss(q_values: th.Tensor, target_q: th.Tensor, clip: float | 
     :param clip: V_clip, or None.
     :return: ``(N,)`` loss of each task, summed over the twin critics.
     """
-    per_sample = 0.5 * (q_values - target_q.unsqueeze(0)).pow(2)
+    per_sample = soft_bellman_sample_loss(q_values, target_q)
     if clip is not None:  # a non-finite loss stays non-finite, so the finiteness check still stops training
         per_sample = th.where(th.isfinite(per_sample), per_sample.clamp(0.0, clip), per_sample)
     return per_sample.mean(dim=-1).sum(dim=0)
+
+
+def clipped_sample_fraction(q_values: th.Tensor, target_q: th.Tensor, clip: float) -> th.Tensor:
+    """Share of task i's samples, over the twin critics and the mini-batch, whose Eq. 15 loss exceeds V_clip: the
+    samples Eq. 16 gives no gradient.
+
+    :param q_values: ``(n_critics, N, L)`` current Q-values.
+    :param target_q: ``(N, L)`` soft targets y.
+    :param clip: V_clip.
+    :return: ``(N,)`` in [0, 1].
+    """
+    with th.no_grad():
+        return (soft_bellman_sample_loss(q_values, target_q) > clip).float().mean(dim=(0, -1))
 
 
 def sac_task_objective(log_prob: th.Tensor, min_q: th.Tensor, ent_coef: th.Tensor) -> th.Tensor:

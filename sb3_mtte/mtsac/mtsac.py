@@ -22,7 +22,7 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
 from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
 from sb3_mtte.common.gradient_surgery import check_gradient_surgery
-from sb3_mtte.common.losses import clipped_soft_q_loss, sac_task_objective
+from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
 from sb3_mtte.common.utils import (
     check_multitask_env,
@@ -278,10 +278,12 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         """One SAC update on a task-major batch: beta_i, then critics (Eq. 15-16), then actor (Eq. 9)."""
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
         ent_coef, stats = self._entropy_step(log_prob)
-        critic_losses = self._critic_losses(replay_data, ent_coef)
+        critic_losses, clipped = self._critic_losses(replay_data, ent_coef)
         kept = self.update_hook.loss_mask(critic_losses.detach())
         self._critic_step(critic_losses, kept)
         stats["critic_loss"] = critic_losses.detach()
+        if clipped is not None:
+            stats["q_loss_clip_fraction"] = clipped
         self.critic.requires_grad_(False)  # constants of the actor loss: no gradient for them in its backward pass
         min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
         self.critic.requires_grad_(True)
@@ -297,15 +299,21 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
             return th.full((self.n_tasks,), 1.0 / self.n_tasks, device=self.device)
         return weights
 
-    def _critic_losses(self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor) -> th.Tensor:
-        """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed."""
+    def _critic_losses(
+        self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor | None]:
+        """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed, and the ``(N,)`` share
+        of samples the clip dropped (None without ``q_loss_clip``)."""
         with th.no_grad():
             next_actions, next_log_prob = self.policy.action_log_prob(replay_data.next_observations)
             next_q = self.critic_target(replay_data.next_observations, next_actions).min(dim=0).values
             next_q = next_q - ent_coef[:, None] * next_log_prob
             target_q = replay_data.rewards + (1 - replay_data.dones) * self.gamma * next_q
         current_q = self.critic(replay_data.observations, replay_data.actions)
-        return clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
+        losses = clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
+        if self.q_loss_clip is None:
+            return losses, None
+        return losses, clipped_sample_fraction(current_q.detach(), target_q, self.q_loss_clip)
 
     def _critic_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
         """Apply one critic update from the per-task losses.

@@ -29,6 +29,8 @@ class PerTaskLogMixin:
         self.logger.record("train/ent_coef", float(stats["ent_coef"].mean()))
         if "ent_coef_loss" in stats:
             self.logger.record("train/ent_coef_loss", float(stats["ent_coef_loss"]))
+        if "q_loss_clip_fraction" in stats:
+            self.logger.record_mean("train/q_loss_clip_fraction", float(stats["q_loss_clip_fraction"].mean()))
         for i in range(self.n_tasks):
             self.logger.record(task_log_key("train/critic_loss", i, self._task_name(i)), float(stats["critic_loss"][i]))
 
