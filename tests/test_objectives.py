@@ -327,6 +327,11 @@ def test_clipped_sample_fraction_counts_the_samples_eq16_drops_per_task():
                 expected[i] += (0.5 * float(q_values[c, i, b] - target[i, b]) ** 2 > clip) / (n_critics * batch)
     assert len(set(expected.tolist())) > 1  # the tasks differ, so a mean over the wrong axis fails
     th.testing.assert_close(clipped_sample_fraction(q_values, target, clip), expected.float())
+    # A loss exactly at V_clip still passes its gradient (clamp), so it is not counted; one just above is.
+    at_and_above = th.tensor([[[2.0, 2.001]]], dtype=th.float64)  # 0.5 * 2^2 = V_clip, then just above
+    th.testing.assert_close(
+        clipped_sample_fraction(at_and_above, th.zeros(1, 2, dtype=th.float64), 2.0), th.tensor([0.5])
+    )
 
 
 # ------------------------------------------------------------------------------------ VAE (Eq. 13-14)
