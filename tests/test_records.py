@@ -12,6 +12,8 @@ import pytest
 
 from sb3_mtte import plot
 from sb3_mtte.experiments import records, summary_figures, variants
+from sb3_mtte.experiments.results import runs_table
+from sb3_mtte.experiments.runs import Run
 from sb3_mtte.experiments.statistics import (
     aggregate_estimates,
     curve_estimates,
@@ -123,7 +125,7 @@ def test_readme_command_draws_one_figure_set_and_table_per_benchmark_from_record
 
     monkeypatch.setattr(summary_figures, "save_figure", keep)
     written = plot.main(args)
-    kinds = ("success_{}.png", "per_task_{}.png", "profile_{}.png", "table1_{}.md", "results_{}.json")
+    kinds = ("success_{}.png", "per_task_{}.png", "profile_{}.png", "table1_{}.md", "runs_{}.md", "results_{}.json")
     assert sorted(p.name for p in written) == sorted(k.format(b) for b in ("MT10-cpu", "toy-conflict") for k in kinds)
     for env_id in ("MT10-cpu", "toy-conflict"):
         by_label = sample_records(env_id)
@@ -157,18 +159,44 @@ def test_success_figure_draws_the_ablations_in_a_panel_of_their_own(tmp_path, mo
 
 
 def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):
-    """docs/figures holds, for every benchmark with records in docs/records, the Table 1 and the aggregate numbers
-    that the README's command draws from them now, and the README shows each of those tables."""
+    """docs/figures holds, for every benchmark with records in docs/records, the Table 1, the runs table and the
+    aggregate numbers that the README's command draws from them now, and the README shows each of those tables."""
     args = readme_plot_command()
     plot.main([str(ROOT / args[0]), "--out", str(tmp_path), *args[3:]])
     readme = (ROOT / "README.md").read_text()
     benchmarks = sorted(path.name for path in (ROOT / "docs" / "records").iterdir() if path.is_dir())
     assert benchmarks
     for env_id in benchmarks:
-        for name in (f"table1_{env_id}.md", f"results_{env_id}.json"):
+        for name in (f"table1_{env_id}.md", f"runs_{env_id}.md", f"results_{env_id}.json"):
             committed = (ROOT / args[2] / name).read_text()
             assert committed == (tmp_path / name).read_text(), f"{name}: redraw with the README's command"
         assert (tmp_path / f"table1_{env_id}.md").read_text().strip() in readme, env_id
+
+
+def hand_run(label: str, seed: int, final: dict[str, float] | None, last: list[float], commit: str) -> Run:
+    """A run of three tasks with one periodic evaluation at 0 and a last one at ``last``."""
+    info = {"label": label, "seed": seed, "task_names": ["a", "b", "c"], "git": {"commit": commit, "dirty": False}}
+    curve = {"timesteps": np.array([1.0, 2.0]), "success_rate": np.array([[0.0, 0.0, 0.0], last])}
+    return Run(Path(label), info, evaluations=curve, final=None if final is None else {"per_task": final})
+
+
+def test_runs_table_lists_every_seed_with_its_final_success_and_tasks_above_zero():
+    """One row per run in label order then seed: the final evaluation's mean (the last evaluation's without one),
+    the last in-training mean, the tasks above 0 highest first (ties by name) and the short commit."""
+    groups = {
+        "Ours": [
+            hand_run("Ours", 1, {"a": 0.5, "b": 0.0, "c": 1.0}, [0.2, 0.1, 0.6], "abcdef123"),
+            hand_run("Ours", 0, {"a": 0.0, "b": 0.0, "c": 0.0}, [0.0, 0.0, 0.0], "1234567aa"),
+        ],
+        "SAC-MT": [hand_run("SAC-MT", 2, None, [0.4, 0.4, 0.1], "fedcba987")],
+    }
+    table = runs_table("MT3", groups)
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in table.splitlines() if line.startswith("| ")]
+    assert rows[1:] == [
+        ["SAC-MT", "2", "30.0", "30.0", "a 40, b 40, c 10", "fedcba9"],
+        ["Ours", "0", "0.0", "0.0", "none", "1234567"],
+        ["Ours", "1", "50.0", "30.0", "c 100, a 50", "abcdef1"],
+    ]
 
 
 def check_table(table: str, by_label: dict[str, list[dict]]) -> None:

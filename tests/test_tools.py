@@ -177,6 +177,7 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
         "nt_MT10_Ours-VAE.png",
         "nt_matrix_MT10_Ours-VAE.png",
         "table1_MT10.md",
+        "runs_MT10.md",
         "results_MT10.json",
     }
     assert {p.name for p in written} == expected

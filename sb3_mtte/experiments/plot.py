@@ -20,6 +20,8 @@ Written to ``--out``, per benchmark ``<b>``:
   the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
   (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
   (``success.json``) when present, else its last evaluation;
+- ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
+  its package commit;
 - ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one entry per run with a final evaluation;
 - from run folders only (they need the logs that records leave out): the figures of
   :mod:`sb3_mtte.experiments.figures` (Bellman error, train frequency, mu and w, transfer-matrix heatmaps at
@@ -41,7 +43,7 @@ from pathlib import Path
 from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.records import load_runs
-from sb3_mtte.experiments.results import benchmark_statistics, results_records, table1
+from sb3_mtte.experiments.results import benchmark_statistics, results_records, runs_table, table1
 from sb3_mtte.experiments.runs import Run, group_runs
 from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
 from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
@@ -65,16 +67,18 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             stats = benchmark_statistics(by_label, opts.reps, opts.seed)
             if stats.scores:
                 plot_profile(bench, stats.scores, opts, written)
-                _write_table(bench, table1(bench, stats, opts.reps, opts.seed), opts, written)
+                _write_table(f"table1_{safe_name(bench)}.md", table1(bench, stats, opts.reps, opts.seed), opts, written)
+                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
             _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
     return written
 
 
-def _write_table(bench: str, table: str, opts: PlotOptions, written: list[Path]) -> None:
-    path = opts.out / f"table1_{safe_name(bench)}.md"
+def _write_table(name: str, table: str, opts: PlotOptions, written: list[Path], echo: bool = True) -> None:
+    path = opts.out / name
     path.write_text(table)
     written.append(path)
-    print(table)
+    if echo:
+        print(table)
 
 
 def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list[Path]) -> None:

@@ -161,6 +161,7 @@ def run_from_record(record: dict[str, Any], path: Path) -> Run:
     keys = ("algo", "label", "env_id", "benchmark", "seed", "task_names", "n_tasks", "episode_length", "started")
     info = {key: record.get(key) for key in keys}
     info["hyperparams"] = record.get("hyperparams") or {}
+    info["git"] = record.get("git") or {}
     run = Run(path, info)
     curve = record.get("curve")
     if curve:

@@ -8,12 +8,13 @@ from typing import Any
 
 import numpy as np
 
-from sb3_mtte.experiments.runs import Run, label_order
+from sb3_mtte.experiments.runs import Run, label_order, success_curve
 from sb3_mtte.experiments.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
     Estimate,
     aggregate_estimates,
+    final_task_scores,
     improvement_probabilities,
     score_matrix,
 )
@@ -121,3 +122,46 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
             cells.append(f"{published[label]:.1f}" if label in published else "-")
         lines.append("| " + " | ".join(cells) + " |")
     return _table_note(bench, stats, published, reps, seed) + "\n\n" + "\n".join(lines) + "\n"
+
+
+RUNS_NOTE = (
+    "{bench}: every run, seed by seed. Final: the final success that Table 1 counts (its final evaluation when "
+    "present, else its last evaluation); last in training: the mean success of the run's last periodic evaluation; "
+    "tasks above 0: the final success of each task that is not 0, highest first; commit: the package commit of the "
+    "run."
+)
+
+
+def _percent(value: float | None) -> str:
+    return "-" if value is None else f"{100 * value:.1f}"
+
+
+def _commit(run: Run) -> str:
+    git = run.info.get("git") or {}
+    commit = str(git.get("commit") or "")[:7]
+    return (commit + " (dirty)" if git.get("dirty") else commit) or "-"
+
+
+def run_row(run: Run) -> list[str]:
+    """Cells of one run in :func:`runs_table`."""
+    final = final_task_scores(run)
+    curve = success_curve(run)
+    last = float(curve[1][-1]) if curve is not None and len(curve[1]) else None
+    above = (
+        [] if final is None else sorted(zip(final, run.task_names, strict=True), key=lambda pair: (-pair[0], pair[1]))
+    )
+    tasks = ", ".join(f"{name} {100 * rate:.0f}" for rate, name in above if rate > 0)
+    seed = "-" if run.seed is None else str(run.seed)
+    mean = None if final is None else float(final.mean())
+    return [run.label, seed, _percent(mean), _percent(last), tasks or "none", _commit(run)]
+
+
+def runs_table(bench: str, groups: dict[str, list[Run]]) -> str:
+    """Markdown table of a benchmark's runs, one row per seed in label order: final and last in-training success,
+    the tasks above 0 at the end, and the package commit."""
+    headers = ["Algorithm", "Seed", "Final (%)", "Last in training (%)", "Tasks above 0 at the end (%)", "Commit"]
+    lines = ["| " + " | ".join(headers) + " |", "|:--|--:|--:|--:|:--|:--|"]
+    for label in label_order(list(groups)):
+        for run in sorted(groups[label], key=lambda r: -1 if r.seed is None else r.seed):
+            lines.append("| " + " | ".join(run_row(run)) + " |")
+    return RUNS_NOTE.format(bench=bench) + "\n\n" + "\n".join(lines) + "\n"
