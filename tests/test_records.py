@@ -173,27 +173,34 @@ def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_r
         assert (tmp_path / f"table1_{env_id}.md").read_text().strip() in readme, env_id
 
 
-def hand_run(label: str, seed: int, final: dict[str, float] | None, last: list[float], commit: str) -> Run:
-    """A run of three tasks with one periodic evaluation at 0 and a last one at ``last``."""
-    info = {"label": label, "seed": seed, "task_names": ["a", "b", "c"], "git": {"commit": commit, "dirty": False}}
-    curve = {"timesteps": np.array([1.0, 2.0]), "success_rate": np.array([[0.0, 0.0, 0.0], last])}
+def hand_run(label: str, seed: int | None, final: dict | None, last: list[float] | None, git: dict | None) -> Run:
+    """A run of three tasks with one periodic evaluation at 0 and a last one at ``last`` (no curve when None)."""
+    info = {"label": label, "seed": seed, "task_names": ["a", "b", "c"], "git": git}
+    curve = None if last is None else {"timesteps": np.array([1.0, 2.0]), "success_rate": np.array([[0.0] * 3, last])}
     return Run(Path(label), info, evaluations=curve, final=None if final is None else {"per_task": final})
 
 
 def test_runs_table_lists_every_seed_with_its_final_success_and_tasks_above_zero():
     """One row per run in label order then seed: the final evaluation's mean (the last evaluation's without one),
-    the last in-training mean, the tasks above 0 highest first (ties by name) and the short commit."""
+    the last in-training mean, the tasks above 0 highest first (ties by name) and the short commit; unknowns are -."""
+    clean = {"dirty": False}
     groups = {
         "Ours": [
-            hand_run("Ours", 1, {"a": 0.5, "b": 0.0, "c": 1.0}, [0.2, 0.1, 0.6], "abcdef123"),
-            hand_run("Ours", 0, {"a": 0.0, "b": 0.0, "c": 0.0}, [0.0, 0.0, 0.0], "1234567aa"),
+            hand_run("Ours", 1, {"a": 0.5, "b": 0.0, "c": 1.0}, [0.2, 0.1, 0.6], {"commit": "abcdef123", **clean}),
+            hand_run("Ours", 0, {"a": 0.0, "b": 0.0, "c": 0.0}, [0.0, 0.0, 0.0], {"commit": "1234567aa", **clean}),
+            hand_run("Ours", None, {"a": 0.0, "b": 0.2, "c": 0.0}, None, {"commit": "9876543bb", "dirty": True}),
         ],
-        "SAC-MT": [hand_run("SAC-MT", 2, None, [0.4, 0.4, 0.1], "fedcba987")],
+        "SAC-MT": [
+            hand_run("SAC-MT", 2, None, [0.4, 0.4, 0.1], {"commit": "fedcba987", **clean}),
+            hand_run("SAC-MT", 3, None, None, None),
+        ],
     }
     table = runs_table("MT3", groups)
     rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in table.splitlines() if line.startswith("| ")]
     assert rows[1:] == [
         ["SAC-MT", "2", "30.0", "30.0", "a 40, b 40, c 10", "fedcba9"],
+        ["SAC-MT", "3", "-", "-", "-", "-"],
+        ["Ours", "-", "6.7", "-", "b 20", "9876543 (dirty)"],
         ["Ours", "0", "0.0", "0.0", "none", "1234567"],
         ["Ours", "1", "50.0", "30.0", "c 100, a 50", "abcdef1"],
     ]

@@ -126,9 +126,9 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
 
 RUNS_NOTE = (
     "{bench}: every run, seed by seed. Final: the final success that Table 1 counts (its final evaluation when "
-    "present, else its last evaluation); last in training: the mean success of the run's last periodic evaluation; "
-    "tasks above 0: the final success of each task that is not 0, highest first; commit: the package commit of the "
-    "run."
+    "present, else its last evaluation); last in training: the mean success of the run's last periodic evaluation "
+    "(of its last training episodes where it logged none); tasks above 0: the final success of each task that is "
+    "not 0, highest first; commit: the package commit at the run's start."
 )
 
 
@@ -139,7 +139,9 @@ def _percent(value: float | None) -> str:
 def _commit(run: Run) -> str:
     git = run.info.get("git") or {}
     commit = str(git.get("commit") or "")[:7]
-    return (commit + " (dirty)" if git.get("dirty") else commit) or "-"
+    if not commit:
+        return "-"
+    return commit + " (dirty)" if git.get("dirty") else commit
 
 
 def run_row(run: Run) -> list[str]:
@@ -153,7 +155,8 @@ def run_row(run: Run) -> list[str]:
     tasks = ", ".join(f"{name} {100 * rate:.0f}" for rate, name in above if rate > 0)
     seed = "-" if run.seed is None else str(run.seed)
     mean = None if final is None else float(final.mean())
-    return [run.label, seed, _percent(mean), _percent(last), tasks or "none", _commit(run)]
+    tasks = "-" if final is None else tasks or "none"
+    return [run.label, seed, _percent(mean), _percent(last), tasks, _commit(run)]
 
 
 def runs_table(bench: str, groups: dict[str, list[Run]]) -> str:
