@@ -173,6 +173,20 @@ def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_r
         assert (tmp_path / f"table1_{env_id}.md").read_text().strip() in readme, env_id
 
 
+def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
+    """record and plot on a folder without runs exit with one line that says what to give or run."""
+    with pytest.raises(SystemExit) as exit_info:
+        records.main([str(tmp_path), "--out", str(tmp_path / "records")])
+    assert exit_info.value.code == 2
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and "python -m sb3_mtte.evaluate" in message
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(tmp_path), "--out", str(tmp_path / "figures")])
+    assert exit_info.value.code == 2
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and "docs/records" in message and "Traceback" not in message
+
+
 def hand_run(label: str, seed: int | None, final: dict | None, last: list[float] | None, git: dict | None) -> Run:
     """A run of three tasks with one periodic evaluation at 0 and a last one at ``last`` (no curve when None)."""
     info = {"label": label, "seed": seed, "task_names": ["a", "b", "c"], "git": git}

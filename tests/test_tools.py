@@ -327,11 +327,6 @@ def test_two_runs_sharing_a_record_file_are_refused(tmp_path):
     assert not (tmp_path / "records").exists()
 
 
-def test_plot_without_runs(tmp_path):
-    with pytest.raises(FileNotFoundError):
-        plot.main([str(tmp_path)])
-
-
 # ================================================================================================ sweep
 def test_sweep_plan_and_budget(tmp_path):
     assert env_id_for("MT10", "smoke") == "MT10-smoke" and env_id_for("MT10", "full") == "MT10"

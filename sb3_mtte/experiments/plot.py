@@ -128,6 +128,9 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     if args.reps < 1:
         parser.error("--reps must be at least 1")
-    written = make_plots(args.sources, opts)
+    try:
+        written = make_plots(args.sources, opts)
+    except FileNotFoundError as error:
+        parser.exit(2, f"{parser.prog}: {error} Give the folder of the runs (train's -f) or docs/records.\n")
     print(f"Wrote {len(written)} files to {opts.out}/")
     return written

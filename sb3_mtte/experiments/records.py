@@ -211,7 +211,11 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     for path in paths:
         print(path)
     if not paths:
-        parser.exit(2, f"{parser.prog}: no run with a final evaluation (success.json) under {args.runs_dir}\n")
+        parser.exit(
+            2,
+            f"{parser.prog}: no run with a final evaluation (success.json) under {args.runs_dir}; evaluate each run "
+            "first: python -m sb3_mtte.evaluate <run folder>/<env id>.zip --episodes 50\n",
+        )
     return paths
 
 
