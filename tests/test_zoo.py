@@ -167,6 +167,13 @@ def _progress(run: Path) -> list[dict[str, str]]:
         return list(csv.DictReader(file))
 
 
+def test_resume_of_a_folder_that_is_not_a_run_names_the_fix(tmp_path):
+    from sb3_mtte.zoo import main
+
+    with pytest.raises(SystemExit, match=r"not a run folder \(no run_info.json\); give <log folder>/<algo>/<env>_<id>"):
+        main(["train", "--resume", str(tmp_path)])
+
+
 def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     """Kill a run after its checkpoint at 400 steps, resume it: everything equals the uninterrupted run."""
     args = ["--save-freq", "200", "--save-replay-buffer", "-params", "learning_starts:100"]

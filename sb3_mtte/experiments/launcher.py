@@ -142,6 +142,11 @@ def train(argv: Sequence[str]) -> None:
         print(LAUNCHER_HELP)
     if ours.resume:  # --resume RUN_DIR: the run's own algorithm and env unless given
         info = run_info.read_run_info(ours.resume) or {}
+        if not info:
+            raise SystemExit(
+                f"--resume {ours.resume}: not a run folder (no {run_info.RUN_INFO_FILE}); give <log folder>/<algo>/"
+                "<env>_<id>, or --algo and --env without a folder to resume the latest run in -f."
+            )
         for flag, key in (("--algo", "algo"), ("--env", "env_id")):
             if not has_flag(zoo_argv, flag) and key in info:
                 zoo_argv += [flag, str(info[key])]
