@@ -108,6 +108,13 @@ def test_benchmark_spec_and_seed():
         evaluate_success(DoNothing(), "toy-conflict", episodes_per_task=0)
 
 
+def test_a_model_of_another_benchmark_is_refused_with_the_fix():
+    """A model trained on 3 toy tasks (observations of 4 + 3 numbers) is not run on 4 tasks."""
+    model = SAC("MlpPolicy", make_mt_env("toy-conflict-3", seed=0), learning_starts=0)
+    with pytest.raises(ValueError, match=r"shape \(7,\), this env gives \(8,\) \(4 tasks\): evaluate it on the bench"):
+        evaluate_success(model, "toy-conflict-4", episodes_per_task=1)
+
+
 def test_callback_logs_and_saves(tmp_path):
     env = make_mt_env("toy-conflict", n_tasks=4, seed=0)
     capture = Capture()

@@ -104,6 +104,7 @@ def evaluate_success(
             env.seed(seed)
     try:
         n_tasks = check_multitask_env(env)
+        _check_model_fits(model, env)
         if not _set_eval_mode(env, True, terminate_on_success):
             warnings.warn("The env has no evaluation mode (set_eval_mode): goal variations are not cycled.")
         try:
@@ -114,6 +115,16 @@ def evaluate_success(
     finally:
         if owns_env:
             env.close()
+
+
+def _check_model_fits(model: Predictor, env: VecEnv) -> None:
+    """Refuse an env whose observations the model was not trained on (another benchmark or number of tasks)."""
+    space = getattr(model, "observation_space", None)
+    if space is not None and space.shape != env.observation_space.shape:
+        raise ValueError(
+            f"The model takes observations of shape {space.shape}, this env gives {env.observation_space.shape} "
+            f"({env.num_envs} tasks): evaluate it on the benchmark it was trained on."
+        )
 
 
 def _run_episodes(model: Predictor, env: VecEnv, n_tasks: int, episodes: int, deterministic: bool) -> np.ndarray:
