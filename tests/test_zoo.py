@@ -174,6 +174,12 @@ def test_resume_of_a_folder_that_is_not_a_run_names_the_fix(tmp_path):
         main(["train", "--resume", str(tmp_path)])
 
 
+def test_a_second_run_into_the_same_folder_names_resume(tmp_path):
+    run_dir = tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
+    with pytest.raises(SystemExit, match=f"{run_dir} already holds a run: use --resume {run_dir}."):
+        tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
+
+
 def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     """Kill a run after its checkpoint at 400 steps, resume it: everything equals the uninterrupted run."""
     args = ["--save-freq", "200", "--save-replay-buffer", "-params", "learning_starts:100"]

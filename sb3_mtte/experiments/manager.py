@@ -77,7 +77,7 @@ class MultiTaskExperimentManager(ExperimentManager):
             self.save_path = os.path.join(self.log_path, f"{self.env_name}_{self.launch.exp_id}")
             self.params_path = f"{self.save_path}/{self.env_name}"
             if (Path(self.save_path) / run_info.RUN_INFO_FILE).is_file():
-                raise FileExistsError(f"{self.save_path} already holds a run: use --resume {self.save_path}.")
+                raise SystemExit(f"{self.save_path} already holds a run: use --resume {self.save_path}.")
         self.checkpoint: Checkpoint | None = None
         self.resumed = False  # from a checkpoint
         self.resume_step: int | None = None  # step the logs are trimmed to (0: resumed without checkpoint)
@@ -141,7 +141,7 @@ class MultiTaskExperimentManager(ExperimentManager):
         """Resuming: the run's own ``config.yml`` (and ``-params`` given now)."""
         config = Path(self.params_path) / "config.yml"
         if not config.is_file():
-            raise FileNotFoundError(f"Cannot resume: {config} not found (not a run folder of the zoo?).")
+            raise SystemExit(f"Cannot resume: {config} not found (not a run folder of the zoo?).")
         print(f"Loading hyperparameters from: {config}")
         with open(config) as file:
             hyperparams = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
