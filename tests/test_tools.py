@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import importlib.util
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -344,6 +345,22 @@ def test_sweep_plan_and_budget(tmp_path):
 
 
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason='needs the ray extra: pip install "ray[tune]"')
+@pytest.mark.parametrize(
+    ("flag", "value", "message"),
+    [
+        ("--algos", "mtsac_nope", "unknown --algos mtsac_nope: choose from .*mtsacte"),
+        ("--envs", "MT11", "unknown --envs MT11: MT10"),
+    ],
+)
+def test_sweep_refuses_an_unknown_algorithm_or_benchmark_before_starting_ray(tmp_path, capsys, flag, value, message):
+    args = {"--algos": "mtsac_mt", "--envs": "toy-conflict", flag: value}
+    with pytest.raises(SystemExit):
+        sweep.main([*(part for pair in args.items() for part in pair), "--out", str(tmp_path)])
+    error = capsys.readouterr().err
+    assert re.search(message, error.strip().splitlines()[-1]) and "Traceback" not in error, error
+    assert not list(tmp_path.iterdir())
+
+
 def test_sweep_tiny_grid_on_local_ray(tmp_path):
     import ray
 

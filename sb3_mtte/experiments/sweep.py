@@ -32,6 +32,8 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import command_prog, launcher, run_info
+from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
+from sb3_mtte.experiments.variants import algo_classes
 
 SWEEP_FILE = "sweep.json"
 BUDGETS = ("full", "smoke", "cpu")
@@ -229,4 +231,10 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--resume", action="store_true", help="re-run the trials of OUT/sweep.json: skip finished")
     parser.add_argument("--ray-verbose", type=int, default=1, help="Ray Tune verbosity (0-3)")
     args = parser.parse_args(argv)
+    unknown_algos = [algo for algo in args.algos if algo not in algo_classes()]
+    if unknown_algos:
+        parser.error(f"unknown --algos {' '.join(unknown_algos)}: choose from {' '.join(algo_classes())}")
+    unknown_envs = [env for env in args.envs if not register_env_id(env_id_for(env, args.budget))]
+    if unknown_envs:
+        parser.error(f"unknown --envs {' '.join(unknown_envs)}: {benchmark_help()}")
     return run_sweep(args, extra)
