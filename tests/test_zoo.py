@@ -275,6 +275,15 @@ def test_enjoy_shorter_than_an_episode_reports_the_unfinished_ones(trained_run, 
     assert "task  3 conflict" in out and "length    7  success so far" in out
 
 
+@pytest.mark.parametrize("command", ["enjoy", "record_video"])
+def test_a_missing_run_or_model_names_the_fix(trained_run, command):
+    folder = str(trained_run.parent.parent)
+    with pytest.raises(SystemExit, match=r"toy-conflict_9 folder was not found: give -f, --algo, --env"):
+        main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--exp-id", "9", "-n", "5"])
+    with pytest.raises(SystemExit, match=r"No model found .*rl_model_999_steps.zip: give -f, --algo, --env"):
+        main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--load-checkpoint", "999", "-n", "5"])
+
+
 def test_record_video_one_file_per_task(trained_run, tmp_path):
     folder = str(trained_run.parent.parent)
     written = main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "-o", str(tmp_path), "--tile"])

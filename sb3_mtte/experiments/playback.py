@@ -34,16 +34,20 @@ from sb3_mtte.experiments.launcher import flag_value, has_flag, patched, registe
 
 
 def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
-    """(name_prefix, model_path, log_path) of the model an enjoy/record_video command names (rl-zoo's rules)."""
-    return get_model_path(
-        args.exp_id,
-        args.folder,
-        args.algo,
-        EnvironmentName(args.env),
-        args.load_best,
-        args.load_checkpoint,
-        args.load_last_checkpoint,
-    )
+    """(name_prefix, model_path, log_path) of the model an enjoy/record_video command names (rl-zoo's rules); a
+    missing run or model exits with one line."""
+    try:
+        return get_model_path(
+            args.exp_id,
+            args.folder,
+            args.algo,
+            EnvironmentName(args.env),
+            args.load_best,
+            args.load_checkpoint,
+            args.load_last_checkpoint,
+        )
+    except (AssertionError, ValueError) as error:  # rl-zoo reports a missing folder or model so
+        raise SystemExit(f"{error}: give -f, --algo, --env (and --exp-id) of a trained run.") from None
 
 
 def _model_parser(prog: str) -> argparse.ArgumentParser:
