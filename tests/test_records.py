@@ -174,7 +174,8 @@ def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_r
 
 
 def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
-    """record and plot on a folder without runs exit with one line that says what to give or run."""
+    """record and plot on a folder without runs, and plot with an unknown task, exit with one line that says what to
+    give or run."""
     with pytest.raises(SystemExit) as exit_info:
         records.main([str(tmp_path), "--out", str(tmp_path / "records")])
     assert exit_info.value.code == 2
@@ -185,6 +186,12 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
     assert exit_info.value.code == 2
     message = capsys.readouterr().err
     assert message.count("\n") == 1 and "docs/records" in message and "Traceback" not in message
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(SAMPLES), "--out", str(tmp_path / "figures"), "--tasks", "reach", "rech"])
+    assert exit_info.value.code == 2
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and "--tasks rech: no task of these runs; their tasks: " in message
+    assert "drawer-close" in message and not (tmp_path / "figures").exists()
 
 
 def hand_run(label: str, seed: int | None, final: dict | None, last: list[float] | None, git: dict | None) -> Run:

@@ -40,6 +40,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.records import load_runs
@@ -49,11 +50,30 @@ from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
 from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
 
 
+class PlotInputError(ValueError):
+    """Sources or options that name nothing to plot."""
+
+
+def _check_tasks(runs: Sequence[Run], wanted: Sequence[str] | None) -> None:
+    """Refuse a ``--tasks`` name that is no task (full or short name) of any run."""
+    names = {n for run in runs for name in run.task_names for n in (name, short_task_name(name))}
+    unknown = [task for task in wanted or [] if task not in names]
+    if unknown:
+        raise PlotInputError(
+            f"--tasks {' '.join(unknown)}: no task of these runs; their tasks: "
+            f"{' '.join(sorted({short_task_name(name) for run in runs for name in run.task_names}))}."
+        )
+
+
 def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
     """Write every figure and table for the runs and records under ``sources``; return the written paths."""
     runs = load_runs(sources)
     if not runs:
-        raise FileNotFoundError(f"No run folder (run_info.json) or record under {', '.join(map(str, sources))}.")
+        raise PlotInputError(
+            f"No run folder (run_info.json) or record under {', '.join(map(str, sources))}. Give the folder of the "
+            "runs (train's -f) or docs/records."
+        )
+    _check_tasks(runs, opts.tasks)
     opts.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     with warnings.catch_warnings():
@@ -130,7 +150,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         parser.error("--reps must be at least 1")
     try:
         written = make_plots(args.sources, opts)
-    except FileNotFoundError as error:
-        parser.exit(2, f"{parser.prog}: {error} Give the folder of the runs (train's -f) or docs/records.\n")
+    except PlotInputError as error:
+        parser.exit(2, f"{parser.prog}: {error}\n")
     print(f"Wrote {len(written)} files to {opts.out}/")
     return written
