@@ -180,9 +180,16 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
         records.main([str(tmp_path), "--out", str(tmp_path / "records")])
     assert exit_info.value.code == 2
     message = capsys.readouterr().err
-    assert message.count("\n") == 1 and "python -m sb3_mtte.evaluate" in message
+    assert message.count("\n") == 1 and "no run folder (run_info.json)" in message and "give train's -f" in message
+    unevaluated = tmp_path / "runs" / "mtsac_mt" / "MT10_1"
+    unevaluated.mkdir(parents=True)
+    (unevaluated / "run_info.json").write_text(json.dumps({"algo": "mtsac_mt", "env_id": "MT10", "seed": 0}))
     with pytest.raises(SystemExit) as exit_info:
-        plot.main([str(tmp_path), "--out", str(tmp_path / "figures")])
+        records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    message = capsys.readouterr().err
+    assert message.count("\n") == 1 and "python -m sb3_mtte.evaluate <run folder>" in message
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "figures")])
     assert exit_info.value.code == 2
     message = capsys.readouterr().err
     assert message.count("\n") == 1 and "docs/records" in message and "Traceback" not in message

@@ -344,12 +344,16 @@ def test_sweep_plan_and_budget(tmp_path):
     assert argv[argv.index("--exp-id") + 1] == "2" and argv[-2:] == ["-n", "10"] and "--num-threads" in argv
 
 
-@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason='needs the ray extra: pip install "ray[tune]"')
 @pytest.mark.parametrize(
     ("flag", "value", "message"),
     [
         ("--algos", "mtsac_nope", "unknown --algos mtsac_nope: choose from .*mtsacte"),
         ("--envs", "MT11", "unknown --envs MT11: MT10"),
+        (
+            "--envs",
+            "MT50",
+            "mtsac_mt has no hyperparameters for MT50 \\(its entries: MT10 .* toy-conflict\\): pass -- -conf",
+        ),
     ],
 )
 def test_sweep_refuses_an_unknown_algorithm_or_benchmark_before_starting_ray(tmp_path, capsys, flag, value, message):
@@ -361,6 +365,7 @@ def test_sweep_refuses_an_unknown_algorithm_or_benchmark_before_starting_ray(tmp
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason='needs the ray extra: pip install "ray[tune]"')
 def test_sweep_tiny_grid_on_local_ray(tmp_path):
     import ray
 

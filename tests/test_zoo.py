@@ -174,6 +174,15 @@ def test_resume_of_a_folder_that_is_not_a_run_names_the_fix(tmp_path):
         main(["train", "--resume", str(tmp_path)])
 
 
+def test_a_benchmark_without_hyperparameters_or_a_resume_without_a_run_names_the_fix(tmp_path):
+    from sb3_mtte.zoo import main
+
+    with pytest.raises(SystemExit, match=r"mtsac_mt has no hyperparameters for toy-conflict-3 \(its entries: .*MT10"):
+        main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict-3", "-f", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"No run of mtsac_mt on toy-conflict in .* to resume: give -f of your runs"):
+        main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict", "-f", str(tmp_path), "--resume"])
+
+
 def test_a_second_run_into_the_same_folder_names_resume(tmp_path):
     run_dir = tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
     with pytest.raises(SystemExit, match=f"{run_dir} already holds a run: use --resume {run_dir}."):
@@ -280,7 +289,7 @@ def test_a_missing_run_or_model_names_the_fix(trained_run, command):
     folder = str(trained_run.parent.parent)
     with pytest.raises(SystemExit, match=r"toy-conflict_9 folder was not found: give -f, --algo, --env"):
         main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--exp-id", "9", "-n", "5"])
-    with pytest.raises(SystemExit, match=r"No model found .*rl_model_999_steps.zip: give -f, --algo, --env"):
+    with pytest.raises(SystemExit, match=r"rl_model_999_steps.zip: load one of the models of .*_1 \(.*best_model.zip"):
         main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--load-checkpoint", "999", "-n", "5"])
 
 

@@ -82,7 +82,10 @@ def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
     env_name = EnvironmentName(env_id)
     exp_id = get_latest_run_id(os.path.join(log_folder, algo), env_name)
     if exp_id == 0:
-        raise FileNotFoundError(f"No run of {algo} on {env_id} in {log_folder}/{algo}/.")
+        raise SystemExit(
+            f"No run of {algo} on {env_id} in {log_folder}/{algo}/ to resume: give -f of your runs, or --resume "
+            "RUN_DIR."
+        )
     return Path(log_folder) / algo / f"{env_name}_{exp_id}"
 
 
@@ -161,6 +164,11 @@ def train(argv: Sequence[str]) -> None:
     if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
     launch = _launch_options(ours, zoo_argv, algo, saved)
+    if resume_dir is None and launch.hyperparams is not None and env_id not in launch.hyperparams and not asks_help:
+        raise SystemExit(
+            f"{algo} has no hyperparameters for {env_id} (its entries: {' '.join(launch.hyperparams)}): pass -conf "
+            f"<file>.yml with an entry {env_id}."
+        )
     launch.resume_dir = resume_dir
     run_zoo_train(zoo_argv, launch)
 

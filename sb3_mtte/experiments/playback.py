@@ -46,8 +46,17 @@ def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
             args.load_checkpoint,
             args.load_last_checkpoint,
         )
-    except (AssertionError, ValueError) as error:  # rl-zoo reports a missing folder or model so
+    except AssertionError as error:  # rl-zoo's report of a missing run folder
         raise SystemExit(f"{error}: give -f, --algo, --env (and --exp-id) of a trained run.") from None
+    except ValueError as error:  # the run folder exists, the model asked for does not
+        env_name = EnvironmentName(args.env)
+        exp_id = args.exp_id or get_latest_run_id(os.path.join(args.folder, args.algo), env_name)
+        run_dir = Path(args.folder) / args.algo / f"{env_name}_{exp_id}"
+        models = " ".join(sorted(path.name for path in run_dir.glob("*.zip"))) or "none"
+        raise SystemExit(
+            f"{error}: load one of the models of {run_dir} ({models}) with --load-best, --load-checkpoint STEPS or "
+            "--load-last-checkpoint, or none of them for the final model."
+        ) from None
 
 
 def _model_parser(prog: str) -> argparse.ArgumentParser:

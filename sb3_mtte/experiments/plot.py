@@ -151,6 +151,6 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     try:
         written = make_plots(args.sources, opts)
     except PlotInputError as error:
-        parser.exit(2, f"{parser.prog}: {error}\n")
+        parser.exit(2, f"{parser.prog}: error: {error}\n")
     print(f"Wrote {len(written)} files to {opts.out}/")
     return written

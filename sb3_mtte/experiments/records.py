@@ -210,11 +210,13 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     paths = write_records(args.runs_dir, args.out)
     for path in paths:
         print(path)
+    if not paths and not discover_runs(args.runs_dir):
+        parser.exit(2, f"{parser.prog}: error: no run folder (run_info.json) under {args.runs_dir}: give train's -f\n")
     if not paths:
         parser.exit(
             2,
-            f"{parser.prog}: no run with a final evaluation (success.json) under {args.runs_dir}; evaluate each run "
-            "first: python -m sb3_mtte.evaluate <run folder>/<env id>.zip --episodes 50\n",
+            f"{parser.prog}: error: no run with a final evaluation (success.json) under {args.runs_dir}; evaluate "
+            "each run first: python -m sb3_mtte.evaluate <run folder>/<env id>.zip --episodes 50\n",
         )
     return paths
 

@@ -32,6 +32,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import command_prog, launcher, run_info
+from sb3_mtte.experiments.configs import zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
 
@@ -236,5 +237,16 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         parser.error(f"unknown --algos {' '.join(unknown_algos)}: choose from {' '.join(algo_classes())}")
     unknown_envs = [env for env in args.envs if not register_env_id(env_id_for(env, args.budget))]
     if unknown_envs:
+        if args.budget != "full":
+            parser.error(f"unknown --envs {' '.join(unknown_envs)}: give the benchmark (MT10) and --budget the budget")
         parser.error(f"unknown --envs {' '.join(unknown_envs)}: {benchmark_help()}")
+    if not launcher.has_flag(extra, "-conf", "--conf-file"):
+        for algo in args.algos:
+            entries = zoo_hyperparameters(algo) or {}
+            missing = [env_id_for(env, args.budget) for env in args.envs if env_id_for(env, args.budget) not in entries]
+            if missing:
+                parser.error(
+                    f"{algo} has no hyperparameters for {' '.join(missing)} (its entries: {' '.join(entries)}): "
+                    "pass -- -conf <file>.yml with those entries"
+                )
     return run_sweep(args, extra)
