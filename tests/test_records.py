@@ -203,20 +203,25 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
 
 def hand_run(label: str, seed: int | None, final: dict | None, last: list[float] | None, git: dict | None) -> Run:
     """A run of three tasks with one periodic evaluation at 0 and a last one at ``last`` (no curve when None)."""
-    info = {"label": label, "seed": seed, "task_names": ["a", "b", "c"], "git": git}
+    info = {"label": label, "seed": seed, "task_names": ["a-v3", "b", "c-v2"], "git": git}
     curve = None if last is None else {"timesteps": np.array([1.0, 2.0]), "success_rate": np.array([[0.0] * 3, last])}
     return Run(Path(label), info, evaluations=curve, final=None if final is None else {"per_task": final})
 
 
 def test_runs_table_lists_every_seed_with_its_final_success_and_tasks_above_zero():
     """One row per run in label order then seed: the final evaluation's mean (the last evaluation's without one),
-    the last in-training mean, the tasks above 0 highest first (ties by name) and the short commit; unknowns are -."""
+    the last in-training mean, the tasks above 0 highest first (ties by name, short names) and the short commit;
+    unknowns are -."""
     clean = {"dirty": False}
     groups = {
         "Ours": [
-            hand_run("Ours", 1, {"a": 0.5, "b": 0.0, "c": 1.0}, [0.2, 0.1, 0.6], {"commit": "abcdef123", **clean}),
-            hand_run("Ours", 0, {"a": 0.0, "b": 0.0, "c": 0.0}, [0.0, 0.0, 0.0], {"commit": "1234567aa", **clean}),
-            hand_run("Ours", None, {"a": 0.0, "b": 0.2, "c": 0.0}, None, {"commit": "9876543bb", "dirty": True}),
+            hand_run(
+                "Ours", 1, {"a-v3": 0.5, "b": 0.0, "c-v2": 1.0}, [0.2, 0.1, 0.6], {"commit": "abcdef123", **clean}
+            ),
+            hand_run(
+                "Ours", 0, {"a-v3": 0.0, "b": 0.0, "c-v2": 0.0}, [0.0, 0.0, 0.0], {"commit": "1234567aa", **clean}
+            ),
+            hand_run("Ours", None, {"a-v3": 0.0, "b": 0.2, "c-v2": 0.0}, None, {"commit": "9876543bb", "dirty": True}),
         ],
         "SAC-MT": [
             hand_run("SAC-MT", 2, None, [0.4, 0.4, 0.1], {"commit": "fedcba987", **clean}),

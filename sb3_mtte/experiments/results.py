@@ -8,6 +8,7 @@ from typing import Any
 
 import numpy as np
 
+from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments.runs import Run, label_order, success_curve
 from sb3_mtte.experiments.statistics import (
     DEFAULT_REPS,
@@ -152,7 +153,7 @@ def run_row(run: Run) -> list[str]:
     above = (
         [] if final is None else sorted(zip(final, run.task_names, strict=True), key=lambda pair: (-pair[0], pair[1]))
     )
-    tasks = ", ".join(f"{name} {100 * rate:.0f}" for rate, name in above if rate > 0)
+    tasks = ", ".join(f"{short_task_name(name)} {100 * rate:.0f}" for rate, name in above if rate > 0)
     seed = "-" if run.seed is None else str(run.seed)
     mean = None if final is None else float(final.mean())
     tasks = "-" if final is None else tasks or "none"
