@@ -201,6 +201,15 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
     assert "drawer-close" in message and not (tmp_path / "figures").exists()
 
 
+@pytest.mark.parametrize("name", ["mtsac_mt/MT10_1/run_info.json", "MT10/mtsac_mt_seed0.json"])
+def test_a_file_that_is_not_json_is_named(tmp_path, name):
+    path = tmp_path / name
+    path.parent.mkdir(parents=True)
+    path.write_text('{"algo": "mtsac_mt",')
+    with pytest.raises(SystemExit, match=f"{re.escape(str(path))} is not valid JSON .*: fix or remove it"):
+        plot.main([str(tmp_path), "--out", str(tmp_path / "figures")])
+
+
 def hand_run(label: str, seed: int | None, final: dict | None, last: list[float] | None, git: dict | None) -> Run:
     """A run of three tasks with one periodic evaluation at 0 and a last one at ``last`` (no curve when None)."""
     info = {"label": label, "seed": seed, "task_names": ["a-v3", "b", "c-v2"], "git": git}

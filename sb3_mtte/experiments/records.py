@@ -34,6 +34,7 @@ import numpy as np
 
 from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import safe_name
+from sb3_mtte.experiments.run_info import read_json
 from sb3_mtte.experiments.runs import Run, discover_runs
 
 RECORD_VERSION = 2
@@ -129,13 +130,6 @@ def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -
     return list(planned)
 
 
-def _read_json(path: Path) -> Any:
-    try:
-        return json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise SystemExit(f"{path} is not valid JSON ({error}): fix or remove it") from None
-
-
 def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
     """Every record (``*.json`` holding a ``record_version``) under ``folder``, with its path, sorted by path.
 
@@ -145,7 +139,7 @@ def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
     for path in sorted(root.rglob("*.json")):
         if any(part.startswith(("_", ".")) for part in path.relative_to(root).parts[:-1]):
             continue
-        data = _read_json(path)
+        data = read_json(path)
         if isinstance(data, dict) and "record_version" in data:
             if data["record_version"] > RECORD_VERSION:
                 raise SystemExit(

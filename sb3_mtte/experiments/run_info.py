@@ -171,12 +171,20 @@ def write_run_info(run_dir: str | os.PathLike, info: Mapping[str, Any]) -> Path:
     return path
 
 
+def read_json(path: Path) -> Any:
+    """The JSON value in ``path``; a file that is not JSON exits with one line naming it."""
+    try:
+        return json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
+        raise SystemExit(f"{path} is not valid JSON ({error}): fix or remove it") from None
+
+
 def read_run_info(run_dir: str | os.PathLike) -> dict[str, Any] | None:
     """The ``run_info.json`` of ``run_dir``, or None when there is none."""
     path = Path(run_dir) / RUN_INFO_FILE
     if not path.is_file():
         return None
-    return json.loads(path.read_text())
+    return read_json(path)
 
 
 def update_run_info(run_dir: str | os.PathLike, **fields: Any) -> dict[str, Any]:

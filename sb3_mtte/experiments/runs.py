@@ -25,7 +25,7 @@ import numpy as np
 from tensorboard.backend.event_processing import event_accumulator
 
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments.run_info import RUN_INFO_FILE
+from sb3_mtte.experiments.run_info import RUN_INFO_FILE, read_json
 from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
 
@@ -117,8 +117,7 @@ class Run:
 
 def load_run(path: Path) -> Run:
     """Read a run folder (see the module docstring)."""
-    info = json.loads((path / RUN_INFO_FILE).read_text())
-    run = Run(path, info)
+    run = Run(path, read_json(path / RUN_INFO_FILE))
     if (path / "evaluations.npz").is_file():
         with np.load(path / "evaluations.npz") as data:
             run.evaluations = {key: np.asarray(data[key]) for key in data.files}
