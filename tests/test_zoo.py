@@ -289,6 +289,9 @@ def test_a_missing_run_or_model_names_the_fix(trained_run, command):
     folder = str(trained_run.parent.parent)
     with pytest.raises(SystemExit, match=r"toy-conflict_9 folder was not found: give -f, --algo, --env"):
         main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--exp-id", "9", "-n", "5"])
+    if command == "enjoy":
+        with pytest.raises(SystemExit, match=r"toy-conflict has 4 tasks: --n-envs must be 4 \(one sub-env per task\)"):
+            main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--n-envs", "four"])
     with pytest.raises(SystemExit, match=r"rl_model_999_steps.zip: load one of the models of .*_1 \(.*best_model.zip"):
         main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--load-checkpoint", "999", "-n", "5"])
 

@@ -85,7 +85,7 @@ def enjoy(argv: Sequence[str]) -> None:
         argv += ["-f", "logs"]
     n_tasks = env_id_n_tasks(env_id)
     n_envs = flag_value(argv, "--n-envs")
-    if n_envs is not None and int(n_envs) != n_tasks:
+    if n_envs is not None and n_envs != str(n_tasks):
         raise SystemExit(f"{env_id} has {n_tasks} tasks: --n-envs must be {n_tasks} (one sub-env per task).")
     if n_envs is None:
         argv += ["--n-envs", str(n_tasks)]
