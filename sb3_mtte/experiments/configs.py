@@ -50,3 +50,16 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
 
 
 __all__ = ["CONFIG_DIR_NAME", "family_config_path", "find_config_dir", "zoo_hyperparameters"]
+
+
+def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-conf") -> str | None:
+    """The error for ``env_ids`` that the zoo key ``algo`` has no hyperparameter entry for, or None when it has
+    every one (or is a key of no family, whose file the user gives)."""
+    entries = zoo_hyperparameters(algo)
+    missing = [env_id for env_id in env_ids if entries is not None and env_id not in entries]
+    if not missing:
+        return None
+    return (
+        f"{algo} has no hyperparameters for {' '.join(missing)} (its entries: {' '.join(entries or {})}): pass "
+        f"{conf_flag} <file>.yml with an entry for each"
+    )

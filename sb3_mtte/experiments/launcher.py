@@ -23,7 +23,7 @@ from rl_zoo3 import hyperparams_opt
 from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
@@ -164,11 +164,9 @@ def train(argv: Sequence[str]) -> None:
     if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
     launch = _launch_options(ours, zoo_argv, algo, saved)
-    if resume_dir is None and launch.hyperparams is not None and env_id not in launch.hyperparams and not asks_help:
-        raise SystemExit(
-            f"{algo} has no hyperparameters for {env_id} (its entries: {' '.join(launch.hyperparams)}): pass -conf "
-            f"<file>.yml with an entry {env_id}."
-        )
+    missing = None if resume_dir or launch.hyperparams is None else missing_entries_message(algo, [env_id])
+    if missing and not asks_help:
+        raise SystemExit(missing)
     launch.resume_dir = resume_dir
     run_zoo_train(zoo_argv, launch)
 

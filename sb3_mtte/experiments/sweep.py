@@ -32,7 +32,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import command_prog, launcher, run_info
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.configs import missing_entries_message
 from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
 
@@ -242,11 +242,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         parser.error(f"unknown --envs {' '.join(unknown_envs)}: {benchmark_help()}")
     if not launcher.has_flag(extra, "-conf", "--conf-file"):
         for algo in args.algos:
-            entries = zoo_hyperparameters(algo) or {}
-            missing = [env_id_for(env, args.budget) for env in args.envs if env_id_for(env, args.budget) not in entries]
+            missing = missing_entries_message(algo, [env_id_for(env, args.budget) for env in args.envs], "-- -conf")
             if missing:
-                parser.error(
-                    f"{algo} has no hyperparameters for {' '.join(missing)} (its entries: {' '.join(entries)}): "
-                    "pass -- -conf <file>.yml with those entries"
-                )
+                parser.error(missing)
     return run_sweep(args, extra)
