@@ -189,6 +189,15 @@ def test_a_second_run_into_the_same_folder_names_resume(tmp_path):
         tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
 
 
+def test_a_resume_without_config_names_it_and_leaves_the_folder_as_it_was(tmp_path):
+    run_dir = tiny_train(tmp_path, "mtsac_mt", "--save-freq", "100", steps=200)
+    (run_dir / ENV / "config.yml").unlink()
+    before = sorted(path.name for path in run_dir.iterdir())
+    with pytest.raises(SystemExit, match=r"Cannot resume: .*config.yml not found"):
+        tiny_train(tmp_path, "mtsac_mt", "--resume", str(run_dir))
+    assert sorted(path.name for path in run_dir.iterdir()) == before  # no monitor file set aside
+
+
 def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
     """Kill a run after its checkpoint at 400 steps, resume it: everything equals the uninterrupted run."""
     args = ["--save-freq", "200", "--save-replay-buffer", "-params", "learning_starts:100"]

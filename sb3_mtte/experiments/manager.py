@@ -219,6 +219,8 @@ class MultiTaskExperimentManager(ExperimentManager):
         step = self.checkpoint.timesteps if self.checkpoint is not None else 0
         self.resume_step = step
         print(f"Resuming {run_dir} from " + (f"{self.checkpoint.model.name}" if self.checkpoint else "scratch"))
+        if self.checkpoint is not None:  # before the folder changes: a run without config.yml is left as it was
+            unprocessed, saved = self.read_hyperparameters()
         set_aside_monitor_files(run_dir)
         trim_jsonl(run_dir / NT_LOG_FILE, step)
         if self.checkpoint is None:
@@ -226,7 +228,6 @@ class MultiTaskExperimentManager(ExperimentManager):
             assert result is not None
             run_info.append_resume(run_dir, checkpoint=None, timesteps=0)
             return result
-        unprocessed, saved = self.read_hyperparameters()
         hyperparams, self.env_wrapper, self.callbacks, self.vec_env_wrapper = self._preprocess_hyperparams(unprocessed)
         self.create_log_folder()
         self.create_callbacks()
