@@ -20,7 +20,7 @@ from sb3_mtte.envs import METAWORLD_BENCHMARKS, TOY_BENCHMARKS, make_env_fns
 from sb3_mtte.envs.toy import parse_toy_name
 from sb3_mtte.experiments.callbacks import EpisodeReporter
 
-BUDGET_SUFFIXES = ("smoke", "cpu")
+BUDGET_SUFFIXES = ("smoke", "cpu", "100k")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
 
 STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "DEV6", "toy-conflict", "toy-agree")

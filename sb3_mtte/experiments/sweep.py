@@ -33,11 +33,11 @@ from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import command_prog, launcher, run_info
 from sb3_mtte.experiments.configs import missing_entries_message
-from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
+from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
 
 SWEEP_FILE = "sweep.json"
-BUDGETS = ("full", "smoke", "cpu")
+BUDGETS = ("full", *BUDGET_SUFFIXES)
 
 
 def import_ray() -> Any:
