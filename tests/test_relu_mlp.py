@@ -1,15 +1,19 @@
 """The one-node ReLU MLP computes what the layer-by-layer graph computes: values and every gradient."""
 
 import configparser
+import re
+from importlib.metadata import requires
 from pathlib import Path
 
 import pytest
 import torch as th
 from torch import nn
+from packaging.requirements import Requirement
 from torch.func import grad, vmap
 
 from sb3_mtte.common.ensemble import EnsembleMLP, mlp
-from sb3_mtte.common.relu_mlp import TESTED_TORCH, fused_relu_mlp
+from sb3_mtte.common import relu_mlp
+from sb3_mtte.common.relu_mlp import fused_relu_mlp
 
 
 def loop_forward(weights, biases, x, stacked: bool, relu_last: bool) -> th.Tensor:
@@ -214,10 +218,40 @@ def test_a_tested_pytorch_release_takes_the_fused_node(monkeypatch, version):
     assert "ReLUMLP" in type(out.grad_fn).__name__
 
 
-def test_setup_cfg_pins_the_tested_pytorch_releases():
-    config = configparser.ConfigParser()
-    config.read(Path(__file__).resolve().parents[1] / "setup.cfg")
-    requirements = [line.split("#")[0].strip() for line in config["options"]["install_requires"].splitlines()]
-    (lower_major, lower_minor), (upper_major, upper_minor) = TESTED_TORCH
-    assert f"torch>={lower_major}.{lower_minor},<{upper_major}.{upper_minor}" in requirements
-    assert (lower_major, lower_minor) <= tuple(int(v) for v in th.__version__.split(".")[:2]) < TESTED_TORCH[1]
+def test_setup_cfg_requires_what_sb3_requires_and_ci_runs_a_tested_release():
+    """A user's PyTorch 2.8 to 2.x is kept (no downgrade); CI's torch==2.13.0 is a release the fused node takes."""
+    root = Path(__file__).resolve().parents[1]
+    config = configparser.ConfigParser(inline_comment_prefixes=("#",))
+    config.read(root / "setup.cfg")
+    ours = [Requirement(line) for line in config["options"]["install_requires"].splitlines() if line.strip()]
+    sb3 = [Requirement(line) for line in requires("stable-baselines3") or []]
+    assert [r.specifier for r in ours if r.name == "torch"] == [r.specifier for r in sb3 if r.name == "torch"]
+    pinned = re.search(r"torch==([\d.]+)", (root / ".ci" / "run").read_text())
+    assert pinned is not None and relu_mlp.tested_release(pinned[1])
+    assert relu_mlp.tested_release(th.__version__)
+
+
+def test_an_untested_release_trains_as_the_layer_by_layer_graph(monkeypatch):
+    """A whole short run under a spoofed PyTorch 2.15 gives the parameters of the layer-by-layer run."""
+    from sb3_mtte import MTSAC, make_mt_env
+
+    def train() -> dict[str, th.Tensor]:
+        model = MTSAC(
+            "MlpPolicy",
+            make_mt_env("toy-conflict", seed=0),
+            policy_kwargs={"net_arch": [16, 16]},
+            learning_starts=40,
+            batch_size=8,
+            seed=0,
+            device="cpu",
+        )
+        model.learn(120)
+        return model.policy.state_dict()
+
+    with fused_relu_mlp(False):
+        plain = train()
+    assert relu_mlp.fused_relu_mlp_applies(th.zeros(2, 3), stacked=False)
+    monkeypatch.setattr(th, "__version__", "2.15.0")
+    assert not relu_mlp.fused_relu_mlp_applies(th.zeros(2, 3), stacked=False)
+    spoofed = train()
+    assert all(th.equal(spoofed[k], plain[k]) for k in plain)
