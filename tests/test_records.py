@@ -13,7 +13,7 @@ import pytest
 from sb3_mtte import plot
 from sb3_mtte.experiments import records, summary_figures, variants
 from sb3_mtte.experiments.results import runs_table
-from sb3_mtte.experiments.runs import Run
+from sb3_mtte.experiments.runs import Run, read_progress_csv
 from sb3_mtte.experiments.statistics import (
     aggregate_estimates,
     curve_estimates,
@@ -299,3 +299,24 @@ def test_committed_samples_have_the_current_format():
         record = json.loads(path.read_text())
         assert record["record_version"] == records.RECORD_VERSION
         assert path == records.record_path(record, SAMPLES)
+
+
+def test_a_record_keeps_the_per_task_critic_loss_and_clip_fraction_of_its_log(tmp_path):
+    """``training`` keeps the per-task critic loss and the clip fraction at up to TRAINING_POINTS evenly spaced dumps
+    of progress.csv, and a run read back from the record has them as scalars (Figs. 3 and 6 draw from records)."""
+    names = ["reach-v3", "push-v3"]
+    steps = np.arange(1, 501) * 10
+    keys = [f"train/critic_loss/{i:02d}_{name.removesuffix('-v3')}" for i, name in enumerate(names)]
+    lines = ["time/total_timesteps," + ",".join(keys) + ",train/q_loss_clip_fraction"]
+    lines += [f"{t},{t * 0.5},{t * 2.0},{t / 1e4}" for t in steps]
+    (tmp_path / "progress.csv").write_text("\n".join(lines) + "\n")
+    run = Run(tmp_path, {"task_names": names}, scalars=read_progress_csv(tmp_path / "progress.csv"))
+    assert run.scalar(keys[1]) is not None, "the test's keys must be the package's"
+    training = records.run_record(run)["training"]
+    kept = training["env_steps"]
+    assert len(kept) == records.TRAINING_POINTS and kept[0] == 10 and kept[-1] == 5000
+    assert training["critic_loss"] == [[t * 0.5, t * 2.0] for t in kept]
+    assert training["q_loss_clip_fraction"] == [t / 1e4 for t in kept]
+    back = records.run_from_record(json.loads(json.dumps(records.run_record(run))), tmp_path / "r.json")
+    np.testing.assert_array_equal(back.scalar(keys[1])[1], [t * 2.0 for t in kept])
+    np.testing.assert_array_equal(back.scalar("train/q_loss_clip_fraction")[0], kept)

@@ -13,6 +13,8 @@ repository. Its fields (format :data:`RECORD_VERSION`):
   and its ``episodes_per_task``;
 - ``final``: the final evaluation (``success.json``): ``mean``, ``per_task``, ``episodes_per_task``, ``env_steps``,
   ``deterministic``;
+- ``training``: the per-task critic loss (soft Bellman error) ``(points, tasks)`` and, with a clip, the share of samples
+  Eq. 16 dropped, at up to :data:`TRAINING_POINTS` of the log's dumps (``env_steps``), for Figs. 3 and 6;
 - ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean and
   z's std; the mean of mu, of w and of C_s membership per task over the run.
 
@@ -32,14 +34,17 @@ from typing import Any
 
 import numpy as np
 
+from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.run_info import read_json
-from sb3_mtte.experiments.runs import Run, discover_runs
+from sb3_mtte.experiments.runs import Run, Series, discover_runs, task_scalar
 
 RECORD_VERSION = 2
 DEFAULT_RECORDS_DIR = Path("docs/records")
 PROBE_KEYS = ("task_probe_accuracy", "task_probe_accuracy_of_mean", "z_std")
+TRAINING_POINTS = 200
+CLIP_FRACTION_KEY = "train/q_loss_clip_fraction"
 
 
 def _curve(run: Run) -> dict[str, Any] | None:
@@ -50,6 +55,28 @@ def _curve(run: Run) -> dict[str, Any] | None:
         "success_rate": np.round(np.asarray(run.evaluations["success_rate"], dtype=float), 6).tolist(),
         "episodes_per_task": run.info.get("hyperparams", {}).get("eval_episodes"),
     }
+
+
+def _training(run: Run) -> dict[str, Any] | None:
+    """Per-task critic loss and the clip's share of dropped samples at up to TRAINING_POINTS evenly spaced dumps."""
+    losses = [task_scalar(run, "train/critic_loss", i) for i in range(run.n_tasks)]
+    if not losses or any(series is None for series in losses):
+        return None
+    steps = losses[0][0]
+    if any(not np.array_equal(series[0], steps) for series in losses):
+        return None
+    kept = np.unique(np.linspace(0, len(steps) - 1, min(len(steps), TRAINING_POINTS)).round().astype(int))
+    training: dict[str, Any] = {
+        "env_steps": [int(t) for t in steps[kept]],
+        "critic_loss": np.stack([series[1][kept] for series in losses], axis=1).round(6).tolist(),
+    }
+    clip = run.scalar(CLIP_FRACTION_KEY)
+    if clip is not None:
+        at_steps = {int(t): float(v) for t, v in zip(*clip, strict=True)}
+        training["q_loss_clip_fraction"] = [
+            None if t not in at_steps else round(at_steps[t], 6) for t in training["env_steps"]
+        ]
+    return training
 
 
 def _representation(run: Run) -> dict[str, Any] | None:
@@ -100,6 +127,7 @@ def run_record(run: Run) -> dict[str, Any]:
             "env_steps": final.get("timesteps"),
             "deterministic": final.get("deterministic"),
         },
+        "training": _training(run),
         "representation": _representation(run),
     }
 
@@ -164,11 +192,28 @@ def run_from_record(record: dict[str, Any], path: Path) -> Run:
             "success_rate": np.asarray(curve["success_rate"], dtype=float),
             "task_names": np.asarray(record.get("task_names") or []),
         }
+    training = record.get("training")
+    if training:
+        run.scalars.update(_training_scalars(training, run))
     final = record.get("final")
     if final:
         run.final = {key: final.get(key) for key in ("mean", "per_task", "episodes_per_task", "deterministic")}
         run.final["timesteps"] = final.get("env_steps")
     return run
+
+
+def _training_scalars(training: dict[str, Any], run: Run) -> dict[str, Series]:
+    """The log keys of a record's ``training`` field, as a run folder's scalars."""
+    steps = np.asarray(training["env_steps"], dtype=float)
+    losses = np.asarray(training["critic_loss"], dtype=float)
+    scalars = {
+        task_log_key("train/critic_loss", i, name): (steps, losses[:, i]) for i, name in enumerate(run.task_names)
+    }
+    clip = training.get("q_loss_clip_fraction")
+    if clip is not None:
+        values = np.asarray([np.nan if v is None else v for v in clip], dtype=float)
+        scalars[CLIP_FRACTION_KEY] = (steps[np.isfinite(values)], values[np.isfinite(values)])
+    return scalars
 
 
 def _run_key(run: Run) -> tuple[Any, ...]:
