@@ -143,7 +143,9 @@ def toy_model_zip(tmp_path_factory):
         ("one meta-world task", "was trained on 4 tasks; reach-v3 has 1: pass --env"),
         ("unknown env", "Unknown benchmark 'nothing-v3'"),
         ("missing file", "No model at"),
+        ("missing file without --env", "No model at"),
         ("truncated", "is not a complete SB3 checkpoint"),
+        ("other benchmark", "trained on the tasks agree-0, agree-1, agree-2, conflict, not toy-agree: pass the --env"),
     ],
 )
 def test_evaluate_refuses_bad_input_with_one_line(toy_model_zip, tmp_path, capsys, case, message):
@@ -155,17 +157,30 @@ def test_evaluate_refuses_bad_input_with_one_line(toy_model_zip, tmp_path, capsy
         env = "reach-v3"
     elif case == "unknown env":
         env = "nothing-v3"
-    elif case == "missing file":
+    elif case.startswith("missing file"):
         model = str(tmp_path / "absent.zip")
     elif case == "truncated":
         data = toy_model_zip.read_bytes()
         (tmp_path / "cut.zip").write_bytes(data[: len(data) // 2])
         model = str(tmp_path / "cut.zip")
+    elif case == "other benchmark":
+        env = "toy-agree"
     with pytest.raises(SystemExit) as exit_info:
-        evaluate.main([model, "--env", env, "--episodes", "1"])
+        evaluate.main([model, *([] if case.endswith("without --env") else ["--env", env]), "--episodes", "1"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err.strip()
     assert message in err and len(err.splitlines()) == 1, err
+
+
+def test_evaluate_on_another_benchmark_when_asked_warns_and_keeps_the_final_evaluation(toy_model_zip, capsys):
+    """--other-benchmark evaluates a toy-conflict model on toy-agree with one warning line naming both, into a file
+    of its own: never success.json, which a run's results read as its final evaluation."""
+    record = evaluate.main([str(toy_model_zip), "--env", "toy-agree", "--episodes", "1", "--other-benchmark"])
+    (warning,) = capsys.readouterr().err.strip().splitlines()
+    assert "trained on the tasks agree-0, agree-1, agree-2, conflict; evaluating it on toy-agree" in warning
+    assert record["benchmark"] == "toy-agree" and record["task_names"][-1] == "agree-3"
+    assert (toy_model_zip.parent / "success_toy_on_toy-agree.json").is_file()
+    assert not (toy_model_zip.parent / "success.json").exists()
 
 
 def test_top_level_help_is_plain_text(capsys):

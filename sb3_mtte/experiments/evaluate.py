@@ -7,10 +7,13 @@ Usage::
 MODEL is a checkpoint of MTSAC or MTSACTE (the class is read from the zip). Each task runs ``--episodes``
 episodes, one per goal variation in order, with deterministic actions (:func:`sb3_mtte.evaluate_success`).
 The env and the benchmark seed default to those of the run folder holding the model (its ``run_info.json``),
-else seed 0; an env id with a budget suffix (``MT10-smoke``) names its benchmark (``MT10``).
+else seed 0; an env id with a budget suffix (``MT10-smoke``) names its benchmark (``MT10``). An ``--env`` whose
+tasks are not the model's (``toy-agree`` for a ``toy-conflict`` model) is refused unless ``--other-benchmark``
+is given, which evaluates it there with a warning.
 
 The per-task table is printed and written as JSON beside the model: ``success.json`` for the run's final
-model, ``success_<model name>.json`` for any other file (checkpoints, ``best_model.zip``).
+model, ``success_<model name>.json`` for any other file (checkpoints, ``best_model.zip``), and
+``success_<model name>_on_<env id>.json`` for an evaluation on another benchmark (never read as the run's final).
 """
 
 from __future__ import annotations
@@ -35,9 +38,14 @@ from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 
 
-def default_output_path(model_path: str | os.PathLike, info: dict[str, Any] | None) -> Path:
-    """``success.json`` beside the run's final model, ``success_<stem>.json`` beside any other model file."""
+def default_output_path(
+    model_path: str | os.PathLike, info: dict[str, Any] | None, other_env_id: str | None = None
+) -> Path:
+    """``success.json`` beside the run's final model, ``success_<stem>.json`` beside any other model file, and
+    ``success_<stem>_on_<env id>.json`` for an evaluation on another benchmark than the model's."""
     model_path = Path(model_path)
+    if other_env_id is not None:
+        return model_path.with_name(f"success_{model_path.stem}_on_{other_env_id}.json")
     final = (info or {}).get("final_model") or (f"{info['env_id']}.zip" if info and "env_id" in info else None)
     if final is not None and model_path.name == final:
         return model_path.with_name("success.json")
@@ -64,6 +72,7 @@ def evaluate_model(
     device: str = "auto",
     out: str | os.PathLike | None = None,
     stochastic: bool = False,
+    other_benchmark: bool = False,
 ) -> dict[str, Any]:
     """Evaluate a saved model, print the table, write the JSON and return its content.
 
@@ -74,8 +83,10 @@ def evaluate_model(
     :param device: torch device.
     :param out: JSON path (default: :func:`default_output_path`).
     :param stochastic: sample actions instead of the deterministic ones.
+    :param other_benchmark: evaluate a model on a benchmark other than the one it was trained on (else refused).
     """
     model_path = Path(model_path)
+    data = _checkpoint_data(model_path)
     info = run_info.read_run_info(model_path.parent)
     env_id = env or (info or {}).get("env_id")
     if env_id is None:
@@ -83,8 +94,8 @@ def evaluate_model(
     benchmark = _benchmark_of(env_id)
     if seed is None:
         seed = int((info or {}).get("benchmark_seed", 0))
-    data = _checkpoint_data(model_path)
     _check_task_count(model_path, data, env_id, benchmark)
+    elsewhere = _check_benchmark(model_path, data, info, env_id, benchmark, other_benchmark)
     model = _load_model_of_run(model_path, info, device)
     start = time.time()
     result = evaluate_success(model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed)
@@ -106,7 +117,7 @@ def evaluate_model(
         "evaluation_seconds": round(time.time() - start, 2),
         "time": run_info.now(),
     }
-    out_path = Path(out) if out is not None else default_output_path(model_path, info)
+    out_path = Path(out) if out is not None else default_output_path(model_path, info, env_id if elsewhere else None)
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(record, indent=2) + "\n")
     title = (
@@ -125,6 +136,30 @@ def _benchmark_of(env_id: str) -> str | list[str]:
         return [benchmark]
     benchmark_task_names(benchmark)  # a clear ValueError for an unknown name
     return benchmark
+
+
+def _check_benchmark(
+    model_path: Path,
+    data: dict[str, Any],
+    info: dict[str, Any] | None,
+    env_id: str,
+    benchmark: str | list[str],
+    allowed: bool,
+) -> bool:
+    """Whether the model's tasks (from its checkpoint, else its run) are not those of ``benchmark``: refused unless
+    ``allowed``, then warned about in one line naming both benchmarks."""
+    trained = data.get("task_names") or (info or {}).get("task_names")
+    tasks = benchmark if isinstance(benchmark, list) else benchmark_task_names(benchmark)
+    if not trained or list(trained) == list(tasks):
+        return False
+    trained_on = (info or {}).get("env_id") or f"the tasks {', '.join(trained)}"
+    if not allowed:
+        raise ValueError(
+            f"{model_path} was trained on {trained_on}, not {env_id}: pass the --env it was trained on, or "
+            "--other-benchmark to evaluate it there anyway."
+        )
+    print(f"Warning: {model_path} was trained on {trained_on}; evaluating it on {env_id}.", file=sys.stderr)
+    return True
 
 
 def _checkpoint_data(model_path: Path) -> dict[str, Any]:
@@ -171,8 +206,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--out", default=None, help="JSON path (default: success.json beside the model)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions")
+    parser.add_argument(
+        "--other-benchmark",
+        action="store_true",
+        help="evaluate on --env although the model was trained on another benchmark (default: refused)",
+    )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     try:
-        return evaluate_model(args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic)
+        return evaluate_model(
+            args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic, args.other_benchmark
+        )
     except (FileNotFoundError, ValueError) as error:
         parser.exit(2, f"{parser.prog}: error: {error}\n")
