@@ -27,7 +27,8 @@ COMMAND_MODULES = [
     "rl_zoo3.enjoy",
     "rl_zoo3.record_video",
     "rl_zoo3.exp_manager",
-    "moviepy.video.io.ImageSequenceClip",
+    "moviepy.video.io.ffmpeg_writer",
+    "tqdm",
     "matplotlib.pyplot",
     "tensorboard.backend.event_processing.event_accumulator",
 ]

@@ -9,18 +9,13 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import StoreDict, get_latest_run_id, get_model_path
-from stable_baselines3.common.base_class import BaseAlgorithm
-from stable_baselines3.common.vec_env import VecEnv
-from stable_baselines3.common.vec_env.base_vec_env import tile_images
 
-from sb3_mtte.common.utils import get_task_names, short_task_name
-from sb3_mtte.envs import make_mt_env
+from sb3_mtte.envs import make_env_fns, make_mt_env
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import (
@@ -31,11 +26,28 @@ from sb3_mtte.experiments.env_ids import (
     split_env_id,
 )
 from sb3_mtte.experiments.launcher import flag_value, has_flag, patched, register_algos
+from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
+
+
+def latest_run_id(args: argparse.Namespace) -> int:
+    """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder``, announced as rl-zoo does;
+    exits with one line when there is none."""
+    env_name = EnvironmentName(args.env)
+    exp_id = get_latest_run_id(os.path.join(args.folder, args.algo), env_name)
+    if exp_id == 0:
+        raise SystemExit(
+            f"No run folder {os.path.join(args.folder, args.algo, f'{env_name}_<id>')}: give -f, --algo, --env "
+            "(and --exp-id) of a trained run."
+        )
+    print(f"Loading latest experiment, id={exp_id}")
+    return exp_id
 
 
 def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
-    """(name_prefix, model_path, log_path) of the model an enjoy/record_video command names (rl-zoo's rules); a
-    missing run or model exits with one line."""
+    """(name_prefix, model_path, log_path) of the model an enjoy/record_video command names (rl-zoo's rules, with
+    ``args.exp_id`` 0 set to the latest run's id); a missing run or model exits with one line."""
+    if args.exp_id == 0:
+        args.exp_id = latest_run_id(args)
     try:
         return get_model_path(
             args.exp_id,
@@ -49,9 +61,7 @@ def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
     except AssertionError as error:  # rl-zoo's report of a missing run folder
         raise SystemExit(f"{error}: give -f, --algo, --env (and --exp-id) of a trained run.") from None
     except ValueError as error:  # the run folder exists, the model asked for does not
-        env_name = EnvironmentName(args.env)
-        exp_id = args.exp_id or get_latest_run_id(os.path.join(args.folder, args.algo), env_name)
-        run_dir = Path(args.folder) / args.algo / f"{env_name}_{exp_id}"
+        run_dir = Path(args.folder) / args.algo / f"{EnvironmentName(args.env)}_{args.exp_id}"
         models = " ".join(sorted(path.name for path in run_dir.glob("*.zip"))) or "none"
         raise SystemExit(
             f"{error}: load one of the models of {run_dir} ({models}) with --load-best, --load-checkpoint STEPS or "
@@ -66,9 +76,15 @@ def _model_parser(prog: str) -> argparse.ArgumentParser:
     parser.add_argument("-f", "--folder", default="logs", help="log folder")
     parser.add_argument("--algo", default="mtsacte", help="zoo algorithm key")
     parser.add_argument("--exp-id", type=int, default=0, help="run id (0: latest)")
-    parser.add_argument("--load-best", action="store_true")
-    parser.add_argument("--load-checkpoint", type=int, default=None)
-    parser.add_argument("--load-last-checkpoint", action="store_true")
+    parser.add_argument("--load-best", action="store_true", help="load best_model.zip (highest mean success)")
+    parser.add_argument(
+        "--load-checkpoint",
+        type=int,
+        default=None,
+        metavar="STEPS",
+        help="load the checkpoint taken at STEPS env steps (rl_model_STEPS_steps.zip)",
+    )
+    parser.add_argument("--load-last-checkpoint", action="store_true", help="load the run's latest checkpoint")
     return parser
 
 
@@ -90,11 +106,8 @@ def enjoy(argv: Sequence[str]) -> None:
     if n_envs is None:
         argv += ["--n-envs", str(n_tasks)]
     args = _model_parser("enjoy").parse_known_args(argv)[0]
-    if args.exp_id == 0:  # resolved here, so that rl-zoo's enjoy does not report it a second time
-        args.exp_id = get_latest_run_id(os.path.join(args.folder, args.algo), EnvironmentName(env_id))
-        print(f"Loading latest experiment, id={args.exp_id}")
-        argv += ["--exp-id", str(args.exp_id)]
     _, _, log_path = locate_model(args)
+    argv += ["--exp-id", str(args.exp_id)]  # resolved, so that rl-zoo's enjoy does not report it a second time
     info = run_info.read_run_info(log_path) or {}
     factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), report_episodes=True)
     _run_zoo_enjoy(argv, factory)
@@ -112,20 +125,23 @@ def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
 def _record_video_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sb3-mtte record_video", parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
-    parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max vector steps (default: as needed)")
+    parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task")
     parser.add_argument("--stochastic", action="store_true", help="sample actions (default: deterministic)")
     parser.add_argument("--seed", type=int, default=None, help="benchmark seed (default: the run's)")
     parser.add_argument("--env-kwargs", type=str, nargs="+", default=None, help="key:value env keyword arguments")
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--fps", type=int, default=None)
+    parser.add_argument("--device", default="auto", help="torch device of the model: auto, cpu, cuda (default auto)")
+    parser.add_argument(
+        "--fps", type=int, default=None, help="frames per second of the videos (default: the env's render_fps, else 30)"
+    )
     parser.add_argument("--tile", action="store_true", help="also write one video of all tasks side by side")
     parser.add_argument("--flip", action="store_true", help="flip frames vertically (Meta-World's corner cameras)")
     return parser
 
 
 def record_video(argv: Sequence[str]) -> list[Path]:
-    """``record_video``: one video per task (and optionally a tiled one) of a trained model.
+    """``record_video``: one video per task (and optionally a tiled one) of a trained model, each task filmed and
+    written before the next (:mod:`sb3_mtte.experiments.video`).
 
     Meta-World renders with MuJoCo: headless machines need ``MUJOCO_GL=egl`` (set by default when there is no
     display) or ``osmesa``.
@@ -148,62 +164,18 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         StoreDict(["--env-kwargs"], "env_kwargs")(parser, namespace, args.env_kwargs)
         env_kwargs.update(namespace.env_kwargs)
     env_kwargs["render_mode"] = "rgb_array"
-    env = make_mt_env(split_env_id(args.env)[0], seed=seed, **env_kwargs)
-    try:
-        model = load_model(model_path, device=args.device)
-        frames, tiled = _collect_frames(model, env, args)
-        fps = args.fps or int((env.metadata or {}).get("render_fps", 0) or 30)
-        out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
-        return _write_videos(frames, tiled, out_dir, name_prefix, get_task_names(env), fps)
-    finally:
-        env.close()
-
-
-def _collect_frames(
-    model: BaseAlgorithm, env: VecEnv, args: argparse.Namespace
-) -> tuple[list[list[np.ndarray]], list[np.ndarray]]:
-    """Frames of ``args.episodes`` episodes per task, and the tiled frames of all tasks (``args.tile``)."""
-    n_tasks = env.num_envs
-    if env.has_attr("set_eval_mode"):
-        env.env_method("set_eval_mode", True)
-    frames: list[list[np.ndarray]] = [[] for _ in range(n_tasks)]
-    tiled: list[np.ndarray] = []
-    episodes = np.zeros(n_tasks, dtype=int)
-    obs = env.reset()
-    steps = 0
-    while (episodes < args.episodes).any() and (args.n_timesteps is None or steps < args.n_timesteps):
-        images = env.get_images()
-        if any(image is None for image in images):
-            raise RuntimeError("The env returned no image: it cannot render in rgb_array mode here.")
-        if args.flip:
-            images = [image[::-1] for image in images]
-        for i in np.flatnonzero(episodes < args.episodes):
-            frames[i].append(images[i])
-        if args.tile:
-            tiled.append(tile_images(images))
-        actions, _ = model.predict(obs, deterministic=not args.stochastic)
-        obs, _, dones, _ = env.step(actions)
-        episodes += dones.astype(int)
-        steps += 1
-    return frames, tiled
-
-
-def _write_videos(
-    frames: list[list[np.ndarray]], tiled: list[np.ndarray], out_dir: Path, prefix: str, names: list[str], fps: int
-) -> list[Path]:
-    """Write one mp4 per task with frames (and the tiled one) and return their paths."""
-    from moviepy.video.io.ImageSequenceClip import ImageSequenceClip  # loads ffmpeg: only when writing videos
-
+    benchmark = split_env_id(args.env)[0]
+    model = load_model(model_path, device=args.device)
+    out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
     out_dir.mkdir(parents=True, exist_ok=True)
-    videos = {out_dir / f"{prefix}-{i:02d}_{short_task_name(names[i])}.mp4": f for i, f in enumerate(frames) if f}
-    if tiled:
-        videos[out_dir / f"{prefix}-all_tasks.mp4"] = tiled
-    for path, clip_frames in videos.items():
-        clip = ImageSequenceClip(list(clip_frames), fps=fps)
-        clip.write_videofile(str(path), logger=None)
-        clip.close()
-        print(f"Saved {path}")
-    return list(videos)
+    written = record_task_videos(model, make_env_fns(benchmark, seed=seed, **env_kwargs), args, out_dir, name_prefix)
+    if args.tile:
+        env = make_mt_env(benchmark, seed=seed, **env_kwargs)
+        try:
+            written += record_tiled_video(model, env, args, out_dir / f"{name_prefix}-all_tasks.mp4")
+        finally:
+            env.close()
+    return written
 
 
 def _saved_env_kwargs(log_path: str, env_id: str) -> dict[str, Any]:
