@@ -13,6 +13,7 @@ helpers every figure shares. The success figures, drawn from records as well, ar
 from __future__ import annotations
 
 import math
+import sys
 import textwrap
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -64,6 +65,8 @@ class PlotOptions:
     :param results_dir: folder of the per-benchmark results JSON (None: ``out``).
     :param reps: bootstrap resamples of the confidence intervals.
     :param seed: seed of the bootstrap resamples.
+    :param include_unfinished: count a run that stopped before its budget without a final evaluation in the
+        final-success statistics (at its last evaluation).
     """
 
     out: Path
@@ -76,6 +79,7 @@ class PlotOptions:
     results_dir: Path | None = None
     reps: int = DEFAULT_REPS
     seed: int = DEFAULT_SEED
+    include_unfinished: bool = False
 
     def xscale(self, run: Run) -> float:
         return 1.0 / run.n_tasks if self.x_per_task else 1.0
@@ -235,7 +239,11 @@ def plot_negative_transfer(bench: str, groups: Groups, opts: PlotOptions, writte
         title = f"{bench}, {label}"
         save_figure(_train_frequency_figure(title, runs, opts), opts.out / f"train_frequency_{name}", opts, written)
         save_figure(_nt_over_time_figure(title, runs, opts), opts.out / f"nt_{name}", opts, written)
-        save_figure(_transfer_matrix_figure(title, runs, opts), opts.out / f"nt_matrix_{name}", opts, written)
+        heatmaps = _drawn_matrices(runs, opts, f"nt_matrix_{name}")
+        if heatmaps:
+            save_figure(
+                _transfer_matrix_figure(title, runs, heatmaps, opts), opts.out / f"nt_matrix_{name}", opts, written
+            )
 
 
 def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
@@ -293,21 +301,52 @@ def _nt_over_time_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> 
     return fig
 
 
-def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
-    """Heatmaps of the N x N matrix J_i(theta^k) - J_i(theta) (mean over seeds) at the matrix times."""
+def _recomputation_times(run: Run, opts: PlotOptions) -> np.ndarray:
+    return np.array([r["timesteps"] for r in run.nt_records], float) * opts.xscale(run)
+
+
+def _drawn_matrices(runs: Sequence[Run], opts: PlotOptions, name: str) -> dict[str, list[int]]:
+    """Title (the time drawn) -> the recomputation of each run that the heatmap averages: the one nearest to each
+    matrix time. A time more than one recomputation interval past a run's last recomputation is skipped with a line
+    naming it; times that draw the same recomputations give one heatmap."""
+    times = [_recomputation_times(run, opts) for run in runs]
+    last = min(float(steps[-1]) for steps in times)
+    reach = min(float(steps[-1] + _interval(steps)) for steps in times)
+    drawn: dict[str, list[int]] = {}
+    for t in _matrix_times(runs, opts):
+        if t > reach:
+            print(
+                f"{name}: t = {t:,.0f} is past the log's last recomputation (t = {last:,.0f}): skipped", file=sys.stderr
+            )
+            continue
+        picks = [int(np.argmin(np.abs(steps - t))) for steps in times]
+        drawn.setdefault(_time_title([steps[j] for steps, j in zip(times, picks, strict=True)]), picks)
+    return drawn
+
+
+def _interval(steps: np.ndarray) -> float:
+    """The usual interval between recomputations (0 with a single one)."""
+    return float(np.median(np.diff(steps))) if len(steps) > 1 else 0.0
+
+
+def _time_title(times: Sequence[float]) -> str:
+    low, high = min(times), max(times)
+    return f"t = {low:,.0f}" if low == high else f"t = {low:,.0f} to {high:,.0f}"
+
+
+def _transfer_matrix_figure(
+    title: str, runs: Sequence[Run], heatmaps: dict[str, list[int]], opts: PlotOptions
+) -> Figure:
+    """Heatmaps of the N x N matrix J_i(theta^k) - J_i(theta) (mean over seeds) at the recomputations drawn."""
     names = [short_task_name(name) for name in runs[0].task_names]
-    times = _matrix_times(runs, opts)
     side = 3.2 + 0.25 * len(names)
-    fig = new_figure(side * len(times) + 0.8, side)
-    for ax, t in zip(fig.subplots(1, len(times), squeeze=False)[0], times, strict=True):
-        matrices = []
-        for run in runs:
-            steps = np.array([r["timesteps"] for r in run.nt_records], float) * opts.xscale(run)
-            matrices.append(np.asarray(run.nt_records[int(np.argmin(np.abs(steps - t)))]["transfer_matrix"]))
+    fig = new_figure(side * len(heatmaps) + 0.8, side)
+    for ax, (time, picks) in zip(fig.subplots(1, len(heatmaps), squeeze=False)[0], heatmaps.items(), strict=True):
+        matrices = [np.asarray(run.nt_records[j]["transfer_matrix"]) for run, j in zip(runs, picks, strict=True)]
         matrix = np.mean(matrices, axis=0)
         scale = float(np.max(np.abs(matrix))) or 1.0
         image = ax.imshow(matrix, cmap="RdBu", norm=TwoSlopeNorm(0.0, -scale, scale))
-        ax.set_title(f"t = {t:,.0f}", fontsize=9)
+        ax.set_title(time, fontsize=9)
         ax.set_xticks(range(len(names)), names, fontsize=7, rotation=90)
         ax.set_yticks(range(len(names)), names, fontsize=7)
         ax.set_xlabel("task i (affected)", fontsize=8)
@@ -320,7 +359,7 @@ def _transfer_matrix_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
 def _matrix_times(runs: Sequence[Run], opts: PlotOptions) -> list[float]:
     if opts.matrix_times:
         return list(opts.matrix_times)
-    steps = np.array([r["timesteps"] for r in runs[0].nt_records], float) * opts.xscale(runs[0])
+    steps = _recomputation_times(runs[0], opts)
     return sorted({float(steps[0]), float(steps[len(steps) // 2]), float(steps[-1])})
 
 

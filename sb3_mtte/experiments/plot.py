@@ -19,13 +19,16 @@ Written to ``--out``, per benchmark ``<b>``:
 - ``table1_<b>.md`` (also printed): per algorithm n (seeds), mean and IQM of the final success over runs x tasks and
   the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
   (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
-  (``success.json``) when present, else its last evaluation;
+  (``success.json``) when present, else its last evaluation; a run without a final evaluation that stopped before its
+  budget (crashed, killed, still training) is left out of the table, the profile and the runs table, and named in
+  one line on stderr (``--include-unfinished`` counts its last evaluation);
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
   its package commit;
 - ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one entry per run with a final evaluation;
 - from run folders only (they need the logs that records leave out): the figures of
   :mod:`sb3_mtte.experiments.figures` (Bellman error, train frequency, mu and w, transfer-matrix heatmaps at
-  ``--matrix-times``).
+  ``--matrix-times``, each titled with the time of the recomputation it draws, the nearest; a time past the log is
+  skipped with a line).
 
 Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
 episodes (``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
@@ -46,7 +49,7 @@ from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negativ
 from sb3_mtte.experiments.records import load_runs
 from sb3_mtte.experiments.results import benchmark_statistics, results_records, runs_table, table1
 from sb3_mtte.experiments.runs import Run, group_runs
-from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
+from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED, run_budget, unfinished
 from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
 
 
@@ -74,6 +77,7 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             "runs (train's -f) or docs/records."
         )
     _check_tasks(runs, opts.tasks)
+    left_out = {id(run) for run in _left_out_runs(runs, opts)}
     opts.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     with warnings.catch_warnings():
@@ -84,13 +88,30 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             plot_per_task(bench, bands, next(iter(by_label.values()))[0].task_names, opts, written)
             plot_bellman(bench, by_label, opts, written)
             plot_negative_transfer(bench, by_label, opts, written)
-            stats = benchmark_statistics(by_label, opts.reps, opts.seed)
+            counted = {label: [r for r in group if id(r) not in left_out] for label, group in by_label.items()}
+            counted = {label: group for label, group in counted.items() if group}
+            stats = benchmark_statistics(counted, opts.reps, opts.seed)
             if stats.scores:
                 plot_profile(bench, stats.scores, opts, written)
                 _write_table(f"table1_{safe_name(bench)}.md", table1(bench, stats, opts.reps, opts.seed), opts, written)
-                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
+                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, counted), opts, written, echo=False)
             _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
     return written
+
+
+def _left_out_runs(runs: Sequence[Run], opts: PlotOptions) -> list[Run]:
+    """The runs that stopped before their budget without a final evaluation (none with ``--include-unfinished``),
+    each named in one line on stderr: the final-success statistics leave them out."""
+    left_out = [] if opts.include_unfinished else [run for run in runs if unfinished(run)]
+    for run in left_out:
+        reached, planned = run_budget(run)
+        stopped = "before its budget" if planned is None else f"at {reached or 0:,} of {planned:,} env steps"
+        print(
+            f"Left out of Table 1: {run.path} ({run.benchmark}, {run.label}, seed {run.seed}) has no final evaluation "
+            f"and stopped {stopped}; --include-unfinished counts its last evaluation",
+            file=sys.stderr,
+        )
+    return left_out
 
 
 def _write_table(name: str, table: str, opts: PlotOptions, written: list[Path], echo: bool = True) -> None:
@@ -124,10 +145,20 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     parser.add_argument("--smooth", type=int, default=1, help="moving-average window in points (default 1: none)")
     parser.add_argument("--tasks", nargs="+", default=None, help="tasks of Figs. 3 and 5 (default: all)")
     parser.add_argument(
-        "--matrix-times", nargs="+", type=float, default=None, help="times of the heatmaps (x units; default 3)"
+        "--matrix-times",
+        nargs="+",
+        type=float,
+        default=None,
+        help="times of the heatmaps (x units; each draws the nearest recomputation; default: first, middle, last)",
     )
     parser.add_argument("--freq-window-episodes", type=int, default=20, help="train-frequency window (episodes)")
     parser.add_argument("--dpi", type=int, default=120)
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="count a run that stopped before its budget without a final evaluation (crashed, killed, still "
+        "training) at its last evaluation (default: left out of Table 1, the profile and the runs table, named)",
+    )
     parser.add_argument(
         "--results-dir",
         default=None,
@@ -145,6 +176,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         results_dir=None if args.results_dir is None else Path(args.results_dir),
         reps=args.reps,
         seed=args.seed,
+        include_unfinished=args.include_unfinished,
     )
     if args.reps < 1:
         parser.error("--reps must be at least 1")

@@ -134,11 +134,39 @@ def curve_estimates(curves: np.ndarray, reps: int = DEFAULT_REPS, seed: int = DE
     }
 
 
+def has_final_evaluation(run: Run) -> bool:
+    """Whether a run has a final evaluation (``success.json``, a record's ``final``) of every task."""
+    per_task = (run.final or {}).get("per_task")
+    return bool(per_task) and all(name in per_task for name in run.task_names)
+
+
+def run_budget(run: Run) -> tuple[int | None, int | None]:
+    """``(reached, planned)`` env steps of a run (all tasks): reached from its ``run_info`` (written when training
+    ends), else its success curve's last point; planned: its ``n_timesteps``; None where unknown."""
+    curve = success_curve(run)
+    reached = run.info.get("timesteps") or (int(curve[0][-1]) if curve is not None and len(curve[0]) else None)
+    planned = run.info.get("n_timesteps") or (run.info.get("hyperparams") or {}).get("n_timesteps")
+    return reached, None if planned is None else int(planned)
+
+
+def unfinished(run: Run) -> bool:
+    """Whether a run stopped before its budget without a final evaluation (it crashed, was killed or is still
+    training): no final evaluation, its ``run_info`` not ``finished``, and fewer env steps reached than its
+    ``n_timesteps`` (without a known budget: ``finished`` false). A run that trained its whole budget without a final
+    evaluation is finished: its last evaluation is its final success."""
+    if has_final_evaluation(run) or run.info.get("finished"):
+        return False
+    reached, planned = run_budget(run)
+    if planned is None:
+        return run.info.get("finished") is False
+    return reached is None or reached < planned
+
+
 def final_task_scores(run: Run) -> np.ndarray | None:
     """A run's final success per task: its final evaluation (``success.json``), else the last point of each task's
     success curve; None when a task has neither."""
-    per_task = (run.final or {}).get("per_task")
-    if per_task and all(name in per_task for name in run.task_names):
+    if has_final_evaluation(run):
+        per_task = (run.final or {})["per_task"]
         return np.array([float(per_task[name]) for name in run.task_names])
     scores = []
     for task in range(run.n_tasks):
@@ -162,8 +190,11 @@ __all__ = [
     "aggregate_estimates",
     "curve_estimates",
     "final_task_scores",
+    "has_final_evaluation",
     "improvement_probabilities",
     "performance_profiles",
+    "run_budget",
     "score_matrix",
     "seeded",
+    "unfinished",
 ]

@@ -1,0 +1,128 @@
+"""Tests of plot on run folders: runs that stopped before their budget, and the times of the transfer-matrix
+heatmaps."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sb3_mtte import plot
+from sb3_mtte.experiments import figures
+
+TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
+BUDGET = 800  # env steps, all tasks
+
+
+def write_run(root: Path, seed: int, evaluations: list[float], final: float | None, **info: object) -> Path:
+    """A toy-conflict run folder of SAC-MT: evaluations every 200 env steps at the given mean success (every task
+    alike), ``success.json`` when ``final`` is given, and ``run_info.json`` with ``info``."""
+    run = root / "mtsac_mt" / f"toy-conflict_{seed + 1}"
+    run.mkdir(parents=True)
+    fields = {"algo": "mtsac_mt", "label": "SAC-MT", "env_id": "toy-conflict", "seed": seed, "task_names": TASKS}
+    (run / "run_info.json").write_text(json.dumps({**fields, "n_tasks": 4, "n_timesteps": BUDGET, **info}))
+    steps = 200 * np.arange(1, len(evaluations) + 1)
+    rates = np.repeat(np.asarray(evaluations, dtype=float)[:, None], len(TASKS), axis=1)
+    np.savez(run / "evaluations.npz", timesteps=steps, success_rate=rates, task_names=np.array(TASKS))
+    if final is not None:
+        (run / "success.json").write_text(json.dumps({"mean": final, "per_task": dict.fromkeys(TASKS, final)}))
+    return run
+
+
+def table_rows(path: Path) -> dict[str, list[str]]:
+    rows = [[cell.strip() for cell in line.split("|")[1:-1]] for line in path.read_text().splitlines()]
+    return {row[0]: row for row in rows[2:] if row}
+
+
+@pytest.fixture
+def runs_with_a_crash(tmp_path: Path) -> tuple[Path, Path]:
+    """Seed 0 evaluated at the end (50%), seed 1 trained its budget with no final evaluation (last one 25%),
+    seed 2 crashed at 200 of 800 env steps (one evaluation, 0%)."""
+    root = tmp_path / "runs"
+    write_run(root, 0, [0.0, 0.1, 0.2, 0.3], 0.5, finished=True, timesteps=BUDGET)
+    write_run(root, 1, [0.0, 0.1, 0.2, 0.25], None, finished=True, timesteps=BUDGET)
+    return root, write_run(root, 2, [0.0], None, finished=False)
+
+
+def test_a_run_that_crashed_is_named_and_left_out_of_table_1(runs_with_a_crash, tmp_path, capsys):
+    """A run with no final evaluation short of its budget is not a 0% seed: Table 1 and the runs table count the
+    two others (a run that trained its whole budget counts at its last evaluation), and one line names it."""
+    root, crashed = runs_with_a_crash
+    plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        f"Left out of Table 1: {crashed} (toy-conflict, SAC-MT, seed 2) has no final evaluation and stopped at 200 "
+        "of 800 env steps; --include-unfinished counts its last evaluation"
+    ]
+    row = table_rows(tmp_path / "figures" / "table1_toy-conflict.md")["SAC-MT"]
+    assert row[1] == "2" and row[2].startswith("37.5 [")
+    runs = (tmp_path / "figures" / "runs_toy-conflict.md").read_text()
+    assert [line.split("|")[2].strip() for line in runs.splitlines() if line.startswith("| SAC-MT")] == ["0", "1"]
+    results = json.loads((tmp_path / "figures" / "results_toy-conflict.json").read_text())
+    assert [record["seed"] for record in results] == [0]
+
+
+def test_include_unfinished_counts_a_crashed_run_at_its_last_evaluation(runs_with_a_crash, tmp_path, capsys):
+    root, _ = runs_with_a_crash
+    plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10", "--include-unfinished"])
+    assert "Left out" not in capsys.readouterr().err
+    row = table_rows(tmp_path / "figures" / "table1_toy-conflict.md")["SAC-MT"]
+    assert row[1] == "3" and row[2].startswith("25.0 [")
+
+
+def write_nt_log(run: Path, per_task_steps: list[int]) -> None:
+    """Recomputations at the given env steps per task (4 tasks), each with a transfer matrix of its own value."""
+    records = [
+        {
+            "timesteps": 4 * steps,
+            "mu": [0.0] * 4,
+            "selected": [1.0] * 4,
+            "weights": [0.25] * 4,
+            "transfer_matrix": np.full((4, 4), -float(j + 1)).tolist(),
+        }
+        for j, steps in enumerate(per_task_steps)
+    ]
+    (run / "negative_transfer.jsonl").write_text("".join(json.dumps(record) + "\n" for record in records))
+
+
+@pytest.fixture
+def kept_figures(monkeypatch) -> dict:
+    """The figures plot draws from the logs, by file name (none written)."""
+    kept: dict = {}
+    monkeypatch.setattr(figures, "save_figure", lambda fig, path, opts, written: kept.__setitem__(path.name, fig))
+    return kept
+
+
+def test_heatmaps_are_titled_with_the_recomputation_they_draw(tmp_path, kept_figures, capsys):
+    """Each heatmap shows the recomputation nearest to its time and says which; a time past the log is skipped with
+    a line; two times that draw the same recomputation give one heatmap."""
+    run = write_run(tmp_path / "runs", 0, [0.0, 0.1, 0.2, 0.3], 0.5, finished=True, timesteps=BUDGET)
+    write_nt_log(run, [5_010, 10_010])
+    times = ["1e3", "9e3", "1.2e4", "1e5"]
+    plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10", "--matrix-times", *times])
+    fig = kept_figures["nt_matrix_toy-conflict_SAC-MT.png"]
+    heatmaps = [ax for ax in fig.axes if ax.images]
+    assert [ax.get_title() for ax in heatmaps] == ["t = 5,010", "t = 10,010"]
+    assert [float(ax.images[0].get_array().mean()) for ax in heatmaps] == [-1.0, -2.0]
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [
+        "nt_matrix_toy-conflict_SAC-MT.png: t = 100,000 is past the log's last recomputation (t = 10,010): skipped"
+    ]
+
+
+def test_times_past_a_single_recomputation_draw_no_heatmap(tmp_path, kept_figures, capsys):
+    """A log with its only recomputation at 5,010 env steps per task: 1e5 and 2.5e6 are both past it, so no heatmap
+    is drawn (not two copies of the 5,010 matrix titled 100,000 and 2,500,000)."""
+    run = write_run(tmp_path / "runs", 0, [0.0, 0.1, 0.2, 0.3], 0.5, finished=True, timesteps=BUDGET)
+    write_nt_log(run, [5_010])
+    plot.main(
+        [str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10", "--matrix-times", "1e5", "2.5e6"]
+    )
+    assert "nt_matrix_toy-conflict_SAC-MT.png" not in kept_figures and "nt_toy-conflict_SAC-MT.png" in kept_figures
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [re.sub(r"t = [\d,]+ is", "t = T is", line) for line in err] == [
+        "nt_matrix_toy-conflict_SAC-MT.png: t = T is past the log's last recomputation (t = 5,010): skipped"
+    ] * 2
