@@ -29,7 +29,7 @@ from sb3_mtte.experiments.launcher import flag_value, has_flag, patched, registe
 from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
 
 
-def latest_run_id(args: argparse.Namespace) -> int:
+def _latest_run_id(args: argparse.Namespace) -> int:
     """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder``, announced as rl-zoo does;
     exits with one line when there is none."""
     env_name = EnvironmentName(args.env)
@@ -47,7 +47,7 @@ def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
     """(name_prefix, model_path, log_path) of the model an enjoy/record_video command names (rl-zoo's rules, with
     ``args.exp_id`` 0 set to the latest run's id); a missing run or model exits with one line."""
     if args.exp_id == 0:
-        args.exp_id = latest_run_id(args)
+        args.exp_id = _latest_run_id(args)
     try:
         return get_model_path(
             args.exp_id,
