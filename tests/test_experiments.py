@@ -111,7 +111,17 @@ def test_console_script_is_declared_and_dispatches(capsys):
         assert exit_info.value.code == 0, command
     with pytest.raises(SystemExit) as exit_info:
         cli.main(["unknown"])
-    assert exit_info.value.code == 2 and "sb3-mtte" in capsys.readouterr().out
+    assert exit_info.value.code == 2 and "sb3-mtte: unknown command 'unknown'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("run", "prog"), [(cli.main, "sb3-mtte"), (cli.zoo_main, "python -m sb3_mtte.zoo")])
+def test_a_misspelled_command_ends_with_one_line_naming_the_nearest(capsys, run, prog):
+    with pytest.raises(SystemExit) as exit_info:
+        run(["enjoi", "--env", "MT10"])
+    out, err = capsys.readouterr()
+    assert exit_info.value.code == 2 and out == ""
+    assert err.startswith(f"{prog}: unknown command 'enjoi' (did you mean 'enjoy'?); commands: train, enjoy, ")
+    assert len(err.splitlines()) == 1
 
 
 def test_console_script_exits_0_after_a_command_that_returns_a_value(monkeypatch):
@@ -189,6 +199,29 @@ def test_top_level_help_is_plain_text(capsys):
     out = capsys.readouterr().out
     assert exit_info.value.code == 0 and "sb3-mtte train --algo mtsacte" in out
     assert "``" not in out and ":mod:" not in out and "::\n" not in out
+    assert "sb3_mtte.experiments" not in out and not any(f"({name})" in out for name in ("configs", "env_ids"))
+
+
+def test_train_help_is_argparse_help_with_the_launcher_options(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["train", "--help"])
+    out = capsys.readouterr().out
+    assert exit_info.value.code == 0 and out.startswith("usage: ")
+    assert "rl-zoo3's train on a benchmark of sb3_mtte" in out and "\nsb3_mtte options:\n" in out
+    assert "--resume [RUN_DIR]    continue the latest checkpoint of RUN_DIR" in out
+    assert "--no-progress         no progress bar" in out and "if toggled" not in out.split("--progress")[1]
+    assert "display a progress bar with tqdm and rich (on by" in out
+    choices = out.split("--algo {")[1].split("}")[0].split(",")
+    assert choices == list(algo_classes()) and "ppo" not in choices
+
+
+def test_sweep_help_describes_every_option(capsys):
+    from sb3_mtte.experiments import sweep
+
+    with pytest.raises(SystemExit):
+        sweep.main(["--help"])
+    out = capsys.readouterr().out
+    assert "CPUs Ray reserves for each run" in out and "GPUs Ray reserves for each run" in out
 
 
 @pytest.mark.parametrize("module", ["evaluate", "plot", "sweep"])
@@ -210,6 +243,7 @@ def test_enjoy_help_lists_the_package_keys(capsys):
         cli.main(["enjoy", "--help"])
     out = capsys.readouterr().out
     assert all(key in out for key in ("mtsacte", "mtsac_mt", "mtsacte_novae", "mtsac_paco"))
+    assert "rl-zoo3's enjoy on a run of sb3_mtte" in out and "ppo" not in out
 
 
 def test_record_of_a_finished_run(tmp_path):

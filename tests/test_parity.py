@@ -156,7 +156,7 @@ def test_empty_or_malformed_envs_fail_clearly():
         check_multitask_env(DummyVecEnv([lambda: OneHotTaskWrapper(gym.make("CartPole-v1"))] * 5))
     one_task = make_mt_env("toy-agree-1")
     assert check_multitask_env(one_task) == 1
-    with pytest.raises(ValueError, match=r"at least 2 tasks \(one sub-env per task\); got 1 sub-env\."):
+    with pytest.raises(ValueError, match=r"at least 2 tasks \(one sub-env per task\); got 1 sub-env: build the env"):
         check_multitask_env(one_task, min_tasks=2)
 
 

@@ -2,12 +2,20 @@
 
 from __future__ import annotations
 
+import math
+import sys
 from collections.abc import Iterable
+from numbers import Integral, Real
+from typing import Any
 
+import gymnasium as gym
 import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnv
+
+MAKE_ENV_FIX = "build the env with make_mt_env (make_mt_env('MT10'), or a list of task names)"
+ONE_TASK_FIX = "or wrap one single-task env in OneHotTaskWrapper (DummyVecEnv([lambda: OneHotTaskWrapper(env)]))"
 
 
 def short_task_name(name: str) -> str:
@@ -55,17 +63,21 @@ def check_multitask_env(env: VecEnv, n_tasks: int | None = None, min_tasks: int 
         plural = "s" if min_tasks > 1 else ""
         raise ValueError(
             f"A multi-task env needs at least {min_tasks} task{plural} (one sub-env per task); got {n_envs} sub-env"
-            f"{'' if n_envs == 1 else 's'}."
+            f"{'' if n_envs == 1 else 's'}: {MAKE_ENV_FIX}."
         )
     obs_space = env.observation_space
     if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
-        raise ValueError(f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}.")
+        raise ValueError(
+            f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}: {MAKE_ENV_FIX}, "
+            f"{ONE_TASK_FIX}."
+        )
     if n_tasks is not None and n_envs != n_tasks:
         raise ValueError(f"Expected an env with one sub-env per task ({n_tasks} tasks), got {n_envs} sub-envs.")
     if obs_space.shape[0] <= n_envs:
         raise ValueError(
             f"Observation of size {obs_space.shape[0]} cannot hold a state and a {n_envs}-dim one-hot: "
-            "the env must have one sub-env per task and append the task one-hot to the state."
+            f"the env must have one sub-env per task and append the task one-hot to the state: {MAKE_ENV_FIX}, "
+            f"{ONE_TASK_FIX}."
         )
     return n_envs
 
@@ -79,8 +91,47 @@ def check_one_hot(obs: np.ndarray, n_tasks: int) -> None:
     if not np.array_equal(tail, np.eye(n_tasks, dtype=tail.dtype)):
         raise ValueError(
             f"Sub-env i must observe the one-hot e_i in its last {n_tasks} entries (one sub-env per task, "
-            "one-hot appended); the observations' last entries are not an identity matrix."
+            f"one-hot appended); the observations' last entries are not an identity matrix: {MAKE_ENV_FIX}, "
+            f"{ONE_TASK_FIX}."
         )
+
+
+def check_not_gymnasium_vector_env(env: Any) -> None:
+    """Refuse a gymnasium VectorEnv, which SB3 takes for an old OpenAI Gym env.
+
+    :raises ValueError: naming :func:`~sb3_mtte.make_mt_env` instead.
+    """
+    if isinstance(env, gym.vector.VectorEnv):
+        raise ValueError(
+            f"{type(env).__name__} is a gymnasium VectorEnv, which SB3 does not take: {MAKE_ENV_FIX}, an SB3 VecEnv "
+            "with one sub-env per task."
+        )
+
+
+def check_batch_size(batch_size: Any) -> None:
+    """:raises ValueError: unless ``batch_size`` (L, transitions per task in a mini-batch) is a positive int."""
+    if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
+        raise ValueError(
+            f"batch_size (L, transitions per task in every mini-batch) must be a positive int such as 128, "
+            f"got {batch_size!r}."
+        )
+
+
+def check_learning_rate(learning_rate: Any) -> None:
+    """:raises ValueError: unless ``learning_rate`` is a schedule or a positive finite number."""
+    if callable(learning_rate):
+        return
+    if isinstance(learning_rate, bool) or not isinstance(learning_rate, Real) or not 0 < learning_rate < math.inf:
+        raise ValueError(f"learning_rate must be a positive number such as 3e-4 or a schedule, got {learning_rate!r}.")
+
+
+def caller_stacklevel() -> int:
+    """``warnings.warn``'s ``stacklevel`` that points at the first caller outside this package (a subclass's
+    override of a method calling its base's adds a frame)."""
+    frame, level = sys._getframe(1), 1
+    while frame.f_back is not None and frame.f_globals.get("__name__", "").startswith("sb3_mtte."):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def check_finite(name: str, value: th.Tensor) -> None:

@@ -15,8 +15,8 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
 ``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``
 and ``python -m sb3_mtte.sweep`` are the same commands.
 
-What ``train`` adds to rl-zoo3: the zoo keys of :mod:`~sb3_mtte.experiments.variants` in ``rl_zoo3.ALGOS`` with
-their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
+What ``train`` adds to rl-zoo3: the package's zoo keys (:mod:`~sb3_mtte.experiments.variants`) in ``rl_zoo3.ALGOS``
+with their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
 (:mod:`~sb3_mtte.experiments.env_ids`); Meta-World's success protocol for evaluation (``--eval-freq`` in total env
 steps, ``--eval-episodes`` per task, ``evaluations.npz`` and ``best_model.zip``); a run folder with
 ``progress.csv``, tensorboard events, ``negative_transfer.jsonl`` (MTSACTE) and ``run_info.json``
@@ -27,20 +27,32 @@ video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
+import difflib
 import re
 import sys
+import textwrap
 import warnings
 from collections.abc import Callable, Sequence
 from typing import Any
+
+import rl_zoo3.enjoy
 
 from sb3_mtte.experiments import evaluate, plot, records, sweep
 from sb3_mtte.experiments.env_ids import register_standard_env_ids
 from sb3_mtte.experiments.launcher import train
 from sb3_mtte.experiments.playback import enjoy, record_video
+from sb3_mtte.experiments.zoo_parsers import ENJOY_DESCRIPTION, zoo_parser
+
+
+def enjoy_command(argv: Sequence[str]) -> Any:
+    """``enjoy``, whose rl-zoo parser shows what it does and the package's zoo keys."""
+    with zoo_parser(rl_zoo3.enjoy, ENJOY_DESCRIPTION):
+        return enjoy(argv)
+
 
 ZOO_COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
     "train": train,
-    "enjoy": enjoy,
+    "enjoy": enjoy_command,
     "record_video": record_video,
 }
 """The rl-zoo commands (``python -m sb3_mtte.zoo``)."""
@@ -56,17 +68,32 @@ COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
 
 
 def plain_text(doc: str) -> str:
-    """A docstring for the terminal: Sphinx roles and inline literals as plain words, ``::`` as ``:``."""
-    doc = re.sub(r":\w+:`~?([\w.]+)`", lambda m: m.group(1).split(".")[-1] if "~" in m.group(0) else m.group(1), doc)
-    return doc.replace("``", "").replace("::\n", ":\n")
+    """A docstring for the terminal: references to modules in parentheses dropped, other Sphinx roles as their last
+    word, inline literals plain, ``::`` as ``:``, and paragraphs (but indented blocks) wrapped anew."""
+    doc = re.sub(r"\s*\(:\w+:`[^`]+`\)", "", doc)
+    doc = re.sub(r":\w+:`~?([\w.]+)`", lambda m: m.group(1).split(".")[-1], doc)
+    doc = doc.replace("``", "").replace("::\n", ":\n")
+    wrap = textwrap.TextWrapper(width=116, break_long_words=False, break_on_hyphens=False)
+    blocks = doc.strip().split("\n\n")
+    return "\n\n".join(block if block.startswith(" ") else wrap.fill(" ".join(block.split())) for block in blocks)
+
+
+def unknown_command_message(prog: str, command: str, commands: Sequence[str]) -> str:
+    """One line naming an unknown command, the nearest known one and every command."""
+    close = difflib.get_close_matches(command, commands, n=1)
+    hint = f" (did you mean {close[0]!r}?)" if close else ""
+    return f"{prog}: unknown command {command!r}{hint}; commands: {', '.join(commands)} ({prog} --help for more)"
 
 
 def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: Sequence[str] | None) -> Any:
     """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None)."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] not in commands and argv[0] not in ("-h", "--help"):
+        print(unknown_command_message(prog, argv[0], list(commands)), file=sys.stderr)
+        raise SystemExit(2)
     if not argv or argv[0] not in commands:
         print(f"usage: {prog} {{{','.join(commands)}}} [options]\n\n{plain_text(__doc__ or '')}")
-        raise SystemExit(0 if argv and argv[0] in ("-h", "--help") else 2)
+        raise SystemExit(0 if argv else 2)
     register_standard_env_ids()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*render_mode.*")
@@ -89,4 +116,4 @@ def zoo_main(argv: Sequence[str] | None = None) -> Any:
     return run_command(ZOO_COMMANDS, "python -m sb3_mtte.zoo", argv)
 
 
-__all__ = ["COMMANDS", "ZOO_COMMANDS", "console_main", "main", "zoo_main"]
+__all__ = ["COMMANDS", "ZOO_COMMANDS", "console_main", "enjoy_command", "main", "zoo_main"]

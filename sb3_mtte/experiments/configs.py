@@ -7,15 +7,36 @@ once per algorithm family; a variant's entries are the family's with the variant
 
 from __future__ import annotations
 
+import difflib
+import inspect
+from collections.abc import Callable, Iterable
 from importlib import resources
 from pathlib import Path
 from typing import Any
 
 import yaml
 
-from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, family_of
+from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, algo_classes, family_of
 
 CONFIG_DIR_NAME = "zoo_configs"
+LAUNCHER_YAML_KEYS = ("eval_freq", "eval_episodes", "save_freq")
+"""Hyperparameter-file keys read by the launcher (defaults of the command-line flags), not by the model."""
+ZOO_YAML_KEYS = (
+    "n_timesteps",
+    "n_envs",
+    "normalize",
+    "frame_stack",
+    "env_wrapper",
+    "vec_env_wrapper",
+    "callback",
+    "monitor_kwargs",
+    "env_kwargs",
+    "noise_type",
+    "noise_std",
+)
+"""Hyperparameter-file keys read by rl-zoo itself, not arguments of the algorithm."""
+FLAG_KEYS = {"env": "--env", "seed": "--seed", "verbose": "--verbose", "device": "--device", "tensorboard_log": "-tb"}
+"""Arguments of the algorithm that rl-zoo sets from its flags."""
 
 
 def find_config_dir() -> Path:
@@ -49,9 +70,6 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
     return {env_key: VARIANTS[algo].build.compose(env_key, entry) for env_key, entry in base.items()}
 
 
-__all__ = ["CONFIG_DIR_NAME", "family_config_path", "find_config_dir", "zoo_hyperparameters"]
-
-
 def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-conf") -> str | None:
     """The error for ``env_ids`` that the zoo key ``algo`` has no hyperparameter entry for, or None when it has
     every one (or is a key of no family, whose file the user gives)."""
@@ -63,3 +81,41 @@ def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-co
         f"{algo} has no hyperparameters for {' '.join(missing)} (its entries: {' '.join(entries or {})}): pass "
         f"{conf_flag} <file>.yml with an entry for each"
     )
+
+
+def hyperparameter_keys(algo: str) -> list[str]:
+    """Every key a hyperparameter entry of the zoo key ``algo`` may hold: the arguments of its class (but those
+    set from rl-zoo's flags), rl-zoo's own keys and the launcher's."""
+    parameters = inspect.signature(algo_classes()[algo].__init__).parameters
+    arguments = [name for name in parameters if name not in ("self", "_init_setup_model", *FLAG_KEYS)]
+    return [*arguments, *ZOO_YAML_KEYS, *LAUNCHER_YAML_KEYS]
+
+
+def unknown_key_message(algo: str, keys: Iterable[str], source: Callable[[str], str]) -> str | None:
+    """The error for the first key that no hyperparameter entry of ``algo`` may hold (the nearest valid key named),
+    or None when every key is valid.
+
+    :param source: where a key was given (``"-params"``, a file), for the message.
+    """
+    valid = hyperparameter_keys(algo)
+    for key in keys:
+        if key in valid:
+            continue
+        if key in FLAG_KEYS:
+            return f"{key} (in {source(key)}) is not a hyperparameter: set it with the flag {FLAG_KEYS[key]}."
+        close = difflib.get_close_matches(key, valid, n=1)
+        hint = f"did you mean {close[0]}?" if close else f"the keys of {algo} are {' '.join(sorted(valid))}."
+        return f"Unknown hyperparameter {key} (in {source(key)}) of {algo}: {hint}"
+    return None
+
+
+__all__ = [
+    "CONFIG_DIR_NAME",
+    "LAUNCHER_YAML_KEYS",
+    "family_config_path",
+    "find_config_dir",
+    "hyperparameter_keys",
+    "missing_entries_message",
+    "unknown_key_message",
+    "zoo_hyperparameters",
+]

@@ -1,15 +1,16 @@
 """``train``: rl-zoo3's train with one sub-env per task, the variants' hyperparameters and resumable runs.
 
-Launcher options of ``train`` (besides rl-zoo's): ``--resume [RUN_DIR]``, ``--exp-id N`` (run folder ``<env>_N``),
-``--no-progress``, ``--no-tensorboard``, ``--keep-buffers K`` (replay-buffer checkpoints kept, default 1, 0 = all),
-``--no-align-checkpoints`` (save at the step reached, not at the next end of episodes). Without ``-conf``, the
-hyperparameters of ``--algo`` are its family's file plus its overrides (:mod:`sb3_mtte.experiments.configs`).
+Launcher options of ``train`` (besides rl-zoo's): :func:`~sb3_mtte.experiments.zoo_parsers.add_launcher_options`.
+Without ``-conf``, the hyperparameters of ``--algo`` are its family's file plus its overrides
+(:mod:`sb3_mtte.experiments.configs`). ``--algo`` takes the package's zoo keys only.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import difflib
+import importlib.util
 import os
 import sys
 from collections.abc import Iterator, Sequence
@@ -27,6 +28,7 @@ from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparam
 from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
+from sb3_mtte.experiments.zoo_parsers import TRAIN_DESCRIPTION, add_launcher_options, zoo_parser
 
 TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
     "eval_freq": ("--eval-freq",),
@@ -41,13 +43,6 @@ TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
     "tensorboard_log": ("-tb", "--tensorboard-log"),
 }
 """rl-zoo flags whose presence on the command line matters (file defaults, resumed runs' own settings)."""
-
-LAUNCHER_HELP = (
-    "sb3_mtte options: --resume [RUN_DIR] (continue the latest checkpoint of RUN_DIR, default the latest "
-    "run of --algo/--env in -f), --exp-id N (run folder <env>_N instead of the next free one), "
-    "--no-progress, --no-tensorboard, --keep-buffers K (replay-buffer checkpoints kept, 0 = all; "
-    "default 1), --no-align-checkpoints.\nrl-zoo options:"
-)
 
 
 def register_algos() -> None:
@@ -91,13 +86,45 @@ def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
 
 def _launcher_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sb3-mtte train", add_help=False)
-    parser.add_argument("--resume", nargs="?", const="", default=None, metavar="RUN_DIR")
-    parser.add_argument("--no-progress", action="store_true")
-    parser.add_argument("--no-tensorboard", action="store_true", default=None)
-    parser.add_argument("--keep-buffers", type=int, default=None)
-    parser.add_argument("--no-align-checkpoints", action="store_true", default=None)
-    parser.add_argument("--exp-id", type=int, default=None)
+    add_launcher_options(parser)
     return parser
+
+
+def check_algo(algo: str | None) -> str:
+    """``algo``; a missing ``--algo`` or one that is no zoo key of the package ends with one line naming the keys."""
+    keys = list(algo_classes())
+    if algo is None:
+        raise SystemExit(f"--algo is required: one of {' '.join(keys)}.")
+    if algo not in keys:
+        close = difflib.get_close_matches(algo, keys, n=1)
+        hint = f"did you mean {close[0]}? " if close else ""
+        raise SystemExit(f"--algo {algo} is not an algorithm of sb3_mtte: {hint}one of {' '.join(keys)}.")
+    return algo
+
+
+def check_budget(zoo_argv: Sequence[str]) -> None:
+    """Refuse ``-n`` of no env step (rl-zoo reads ``-n 0`` or below as the file's ``n_timesteps``)."""
+    value = flag_value(zoo_argv, "-n", "--n-timesteps")
+    if value is not None and value.lstrip("-").isdigit() and int(value) <= 0:
+        raise SystemExit(
+            f"-n {value}: n must be a positive number of env steps (over all tasks), e.g. -n 10000; without -n the "
+            "hyperparameters' n_timesteps is trained."
+        )
+
+
+def check_conf_file(zoo_argv: Sequence[str]) -> None:
+    """Refuse a ``-conf`` that is neither a file nor an importable module (rl-zoo's two kinds)."""
+    conf = flag_value(zoo_argv, "-conf", "--conf-file")
+    if conf is None or Path(conf).is_file():
+        return
+    if not conf.endswith((".yml", ".yaml", ".py")):
+        with contextlib.suppress(ImportError, ValueError):
+            if importlib.util.find_spec(conf) is not None:
+                return
+    raise SystemExit(
+        f"-conf {conf}: no such file; give a hyperparameter file (.yml with one entry per env id, as rl-zoo's) or "
+        "a Python module with a hyperparams dict."
+    )
 
 
 def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None) -> tuple[str, dict[str, Any]]:
@@ -126,7 +153,7 @@ def _launch_options(ours: argparse.Namespace, zoo_argv: list[str], algo: str, sa
         return given if given is not None else saved.get(key, default)
 
     no_align, no_tensorboard = ours.no_align_checkpoints, ours.no_tensorboard
-    uses_conf = has_flag(zoo_argv, "-conf", "--conf-file", "-h", "--help")
+    uses_conf = has_flag(zoo_argv, "-conf", "--conf-file")
     return LaunchOptions(
         exp_id=ours.exp_id,
         flags_given=frozenset(dest for dest, names in TRACKED_FLAGS.items() if has_flag(zoo_argv, *names)),
@@ -140,9 +167,9 @@ def _launch_options(ours: argparse.Namespace, zoo_argv: list[str], algo: str, sa
 def train(argv: Sequence[str]) -> None:
     """``train``: rl-zoo's train with the launcher's additions (see the module docstring)."""
     ours, zoo_argv = _launcher_parser().parse_known_args(list(argv))
-    asks_help = has_flag(zoo_argv, "-h", "--help")
-    if asks_help:
-        print(LAUNCHER_HELP)
+    if has_flag(zoo_argv, "-h", "--help"):  # rl-zoo's parser prints the help and exits
+        run_zoo_train(zoo_argv, LaunchOptions())
+        return
     if ours.resume:  # --resume RUN_DIR: the run's own algorithm and env unless given
         info = run_info.read_run_info(ours.resume) or {}
         if not info:
@@ -153,19 +180,21 @@ def train(argv: Sequence[str]) -> None:
         for flag, key in (("--algo", "algo"), ("--env", "env_id")):
             if not has_flag(zoo_argv, flag) and key in info:
                 zoo_argv += [flag, str(info[key])]
-    algo = flag_value(zoo_argv, "--algo") or "ppo"
     env_id = flag_value(zoo_argv, "--env")
-    if env_id is None and not asks_help:
+    if env_id is None:
         raise SystemExit(f"--env is required: {benchmark_help()}")
-    if env_id is not None and not register_env_id(env_id):
+    if not register_env_id(env_id):
         raise SystemExit(f"{env_id!r} is not a benchmark of sb3_mtte: {benchmark_help()}")
+    algo = check_algo(flag_value(zoo_argv, "--algo"))
+    check_budget(zoo_argv)
+    check_conf_file(zoo_argv)
     register_algos()
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
     if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
     launch = _launch_options(ours, zoo_argv, algo, saved)
     missing = None if resume_dir or launch.hyperparams is None else missing_entries_message(algo, [env_id])
-    if missing and not asks_help:
+    if missing:
         raise SystemExit(missing)
     launch.resume_dir = resume_dir
     run_zoo_train(zoo_argv, launch)
@@ -184,6 +213,7 @@ def run_zoo_train(zoo_argv: list[str], launch: LaunchOptions) -> None:
     with (
         patched(sys, "argv", [f"{sys.argv[0]} train", *zoo_argv]),
         patched(rl_zoo3.train, "ExperimentManager", make_manager),
+        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True),
     ):
         rl_zoo3.train.train()
 
@@ -199,4 +229,15 @@ def patched(obj: Any, name: str, value: Any) -> Iterator[None]:
         setattr(obj, name, old)
 
 
-__all__ = ["flag_value", "has_flag", "latest_run_dir", "patched", "register_algos", "run_zoo_train", "train"]
+__all__ = [
+    "check_algo",
+    "check_budget",
+    "check_conf_file",
+    "flag_value",
+    "has_flag",
+    "latest_run_dir",
+    "patched",
+    "register_algos",
+    "run_zoo_train",
+    "train",
+]

@@ -29,13 +29,10 @@ from sb3_mtte.common.utils import get_task_names
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
-from sb3_mtte.experiments.configs import family_config_path
+from sb3_mtte.experiments.configs import LAUNCHER_YAML_KEYS, family_config_path, unknown_key_message
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
 from sb3_mtte.experiments.run_logs import make_run_logger, set_aside_monitor_files, trim_jsonl
 from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
-
-LAUNCHER_YAML_KEYS = ("eval_freq", "eval_episodes", "save_freq")
-"""Hyperparameter-file keys read by the launcher (defaults of the command-line flags), not by the model."""
 
 
 @dataclass
@@ -118,6 +115,9 @@ class MultiTaskExperimentManager(ExperimentManager):
             hyperparams = self._read_variant_hyperparameters(self.launch.hyperparams)
         else:
             hyperparams, _ = super().read_hyperparameters()
+        unknown = unknown_key_message(self.algo, hyperparams, self._source_of)
+        if unknown:
+            raise SystemExit(unknown)
         n_envs = hyperparams.get("n_envs")
         if n_envs is not None and int(n_envs) != self.n_tasks:
             raise ValueError(f"n_envs={n_envs} in the hyperparameters, but {self.env_id} has {self.n_tasks} tasks.")
@@ -136,6 +136,12 @@ class MultiTaskExperimentManager(ExperimentManager):
         saved.update({key: value for key, value in self._zoo_yaml_values().items()})
         saved = OrderedDict((key, saved[key]) for key in sorted(saved))
         return hyperparams, saved
+
+    def _source_of(self, key: str) -> str:
+        """Where a hyperparameter was given: ``-params``, else the file read."""
+        if key in (self.custom_hyperparams or {}):
+            return "-params"
+        return str(Path(self.params_path) / "config.yml") if self.launch.resume_dir is not None else str(self.config)
 
     def _read_run_hyperparameters(self) -> dict[str, Any]:
         """Resuming: the run's own ``config.yml`` (and ``-params`` given now)."""
@@ -203,9 +209,14 @@ class MultiTaskExperimentManager(ExperimentManager):
 
     # ---- set-up
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
-        if self.launch.resume_dir is not None:
-            return self._setup_resume()
-        result = super().setup_experiment()
+        """rl-zoo's set-up, or a resumed run's; a ``ValueError`` of the hyperparameters, env or model (a value out
+        of range) ends with its one line."""
+        try:
+            if self.launch.resume_dir is not None:
+                return self._setup_resume()
+            result = super().setup_experiment()
+        except ValueError as error:
+            raise SystemExit(f"{self.algo} on {self.env_id}: {error}") from None
         if result is not None:
             self._write_run_info(*result)
         return result

@@ -225,8 +225,13 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--out", required=True, help="runs folder (the zoo's -f)")
     parser.add_argument("--address", default=None, help="Ray cluster address (default: start Ray locally)")
     parser.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
-    parser.add_argument("--cpus-per-trial", type=float, default=1.0)
-    parser.add_argument("--gpus-per-trial", type=float, default=0.0)
+    parser.add_argument("--cpus-per-trial", type=float, default=1.0, help="CPUs Ray reserves for each run (default 1)")
+    parser.add_argument(
+        "--gpus-per-trial",
+        type=float,
+        default=0.0,
+        help="GPUs Ray reserves for each run, a fraction shares one (default 0)",
+    )
     parser.add_argument("--max-concurrent", type=int, default=0, help="max trials at once (0: as resources allow)")
     parser.add_argument("--retries", type=int, default=0, help="retries of a failed trial (each resumes its run)")
     parser.add_argument("--resume", action="store_true", help="re-run the trials of OUT/sweep.json: skip finished")

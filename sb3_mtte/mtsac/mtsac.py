@@ -7,6 +7,7 @@ SAC-Ind) and, for SAC-MT-with-clip, ``q_loss_clip=2000``.
 from __future__ import annotations
 
 import math
+import warnings
 from collections import deque
 from typing import Any, ClassVar, TypeVar
 
@@ -25,7 +26,11 @@ from sb3_mtte.common.gradient_surgery import check_gradient_surgery
 from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
 from sb3_mtte.common.utils import (
+    caller_stacklevel,
+    check_batch_size,
+    check_learning_rate,
     check_multitask_env,
+    check_not_gymnasium_vector_env,
     check_one_hot,
     get_task_names,
     polyak_update,
@@ -139,6 +144,9 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        check_not_gymnasium_vector_env(env)
+        check_batch_size(batch_size)
+        check_learning_rate(learning_rate)
         check_q_loss_clip(q_loss_clip)
         check_gradient_surgery(gradient_surgery, cagrad_c)
         check_ent_coef_arch(ent_coef_arch)
@@ -251,6 +259,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         return result
 
     def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
+        check_not_gymnasium_vector_env(env)
         if isinstance(env, VecEnv):
             check_multitask_env(env, self.n_tasks, min_tasks=self.min_tasks)
         super().set_env(env, force_reset)
@@ -378,4 +387,11 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfMTSAC:
-        return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+        super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+        if self.num_timesteps <= self.learning_starts:  # SB3 updates once num_timesteps > learning_starts
+            warnings.warn(
+                f"learn ended at {self.num_timesteps} env steps, not past learning_starts={self.learning_starts}: "
+                "no gradient update was made; learn for more steps or lower learning_starts.",
+                stacklevel=caller_stacklevel(),
+            )
+        return self

@@ -79,6 +79,7 @@ class MTSACTE(MTSAC):
         matrices. ``"significant"``: as ``"mean"``, counting only entries below zero by more than two standard
         errors over those batches. C_s and w at the end of an iteration then rest on all ``rep_gradient_steps``
         batches.
+    :param critic_arch: ``"per_task"`` only: mu (Eq. 6) reads each task's own critics (a shared critic is MTSAC's).
     :param kwargs: every other argument of :class:`sb3_mtte.MTSAC` (learning_rate, batch_size = L per task, ...).
     """
 
@@ -114,6 +115,7 @@ class MTSACTE(MTSAC):
         use_topk: bool = True,
         nt_chunk_size: int | str | None = "auto",
         nt_measure: str = "per_batch",
+        critic_arch: str = "per_task",
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -142,6 +144,11 @@ class MTSACTE(MTSAC):
             raise ValueError(f"nt_measure must be one of {NT_MEASURES}, got {nt_measure!r}.")
         if iteration_length < 1 or rep_gradient_steps < 1:
             raise ValueError("iteration_length (H) and rep_gradient_steps must be at least 1.")
+        if critic_arch != "per_task":
+            raise ValueError(
+                f"MTSACTE's critics are per task (critic_arch='per_task'), got {critic_arch!r}: a shared critic is "
+                "MTSAC(..., critic_arch='shared')."
+            )
         replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
         super().__init__(
             policy,
@@ -173,7 +180,10 @@ class MTSACTE(MTSAC):
         if self.env is not None:
             n_select = self.n_tasks // 2 if n_select is None else n_select
             if not 1 <= n_select < self.n_tasks:
-                raise ValueError(f"n_select (M) must satisfy 1 <= M < N = {self.n_tasks}, got {n_select}.")
+                raise ValueError(
+                    f"n_select (M) must satisfy 1 <= M < N = {self.n_tasks}, got {n_select} (default N // 2 = "
+                    f"{self.n_tasks // 2})."
+                )
         self.n_select = n_select
         self.top_k, self.use_topk, self.use_vae = top_k, use_topk, use_vae
         self.nt_step_size, self.c_vae, self.rep_learning_rate = nt_step_size, c_vae, rep_learning_rate

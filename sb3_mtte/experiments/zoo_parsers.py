@@ -1,0 +1,97 @@
+"""rl-zoo's own argument parsers of ``train`` and ``enjoy`` as this package shows them: a description, the
+launcher's options in ``train``'s help, ``--algo`` limited to the package's zoo keys, and a ``key:value`` of
+``-params`` or ``--env-kwargs`` that is no Python value ending with one line."""
+
+from __future__ import annotations
+
+import argparse
+import functools
+from types import ModuleType, SimpleNamespace
+from typing import Any
+from unittest import mock
+
+from rl_zoo3.utils import StoreDict
+
+from sb3_mtte.experiments.variants import algo_classes
+
+TRAIN_DESCRIPTION = (
+    "rl-zoo3's train on a benchmark of sb3_mtte, one sub-env per task. Without -conf, the hyperparameters of --algo "
+    "are its family's file plus its overrides; --eval-freq counts env steps over all tasks and --eval-episodes "
+    "episodes per task (Meta-World's success protocol); checkpoints (--save-freq) are what --resume continues from."
+)
+ENJOY_DESCRIPTION = (
+    "rl-zoo3's enjoy on a run of sb3_mtte: the model of -f, --algo, --env and --exp-id acts in one sub-env per task, "
+    "and every finished episode is printed."
+)
+PROGRESS_HELP = "display a progress bar with tqdm and rich (on by default: --no-progress hides it)"
+
+
+def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+    """The options of ``train`` that rl-zoo does not have."""
+    parser.add_argument(
+        "--resume",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="RUN_DIR",
+        help="continue the latest checkpoint of RUN_DIR (without RUN_DIR: of the latest run of --algo/--env in -f)",
+    )
+    parser.add_argument(
+        "--exp-id", type=int, default=None, metavar="N", help="run folder <env>_N (default: the next free N)"
+    )
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--no-tensorboard", action="store_true", default=None, help="no tensorboard events")
+    parser.add_argument(
+        "--keep-buffers", type=int, default=None, metavar="K", help="replay-buffer checkpoints kept (default 1; 0: all)"
+    )
+    parser.add_argument(
+        "--no-align-checkpoints",
+        action="store_true",
+        default=None,
+        help="save a checkpoint at the step reached, not at the next end of episodes",
+    )
+
+
+class CheckedStoreDict(StoreDict):
+    """rl-zoo's ``key:value`` option, whose values are Python expressions; one that does not evaluate ends with one
+    line naming it."""
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: Any, values: Any, option_string: Any = None) -> None:
+        for item in values:
+            try:
+                super().__call__(parser, namespace, [item], option_string)
+            except Exception as error:  # rl-zoo evaluates the value: any error of Python's
+                raise SystemExit(
+                    f"{option_string} {item}: {error}; each value is Python, strings quoted (batch_size:64 "
+                    f"policy:\"'MlpPolicy'\")."
+                ) from None
+        super().__call__(parser, namespace, values, option_string)
+
+
+class ZooParser(argparse.ArgumentParser):
+    """rl-zoo's parser with this package's keys as ``--algo`` choices, checked ``key:value`` options and, with
+    ``launcher_options``, the launcher's options in a group of the help."""
+
+    def __init__(self, *args: Any, launcher_options: bool = False, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        if launcher_options:
+            add_launcher_options(self.add_argument_group("sb3_mtte options"))
+
+    def add_argument(self, *names: Any, **kwargs: Any) -> argparse.Action:
+        if "--algo" in names:
+            kwargs.update(choices=list(algo_classes()), help="zoo key of the algorithm (MTSAC's or MTSACTE's variants)")
+        if "--progress" in names:
+            kwargs["help"] = PROGRESS_HELP
+        if kwargs.get("action") is StoreDict:
+            kwargs["action"] = CheckedStoreDict
+        return super().add_argument(*names, **kwargs)
+
+
+def zoo_parser(module: ModuleType, description: str, launcher_options: bool = False) -> Any:
+    """A context manager making the ``argparse.ArgumentParser()`` of rl-zoo's ``module`` (``rl_zoo3.train`` or
+    ``rl_zoo3.enjoy``, which build their parser inside the command) a :class:`ZooParser`."""
+    parser = functools.partial(ZooParser, description=description, launcher_options=launcher_options)
+    return mock.patch.object(module, "argparse", SimpleNamespace(ArgumentParser=parser))
+
+
+__all__ = ["ENJOY_DESCRIPTION", "TRAIN_DESCRIPTION", "add_launcher_options", "zoo_parser"]
