@@ -151,7 +151,7 @@ def toy_model_zip(tmp_path_factory):
     [
         ("wrong benchmark", "was trained on 4 tasks; toy-conflict-6 has 6: pass --env"),
         ("one meta-world task", "was trained on 4 tasks; reach-v3 has 1: pass --env"),
-        ("unknown env", "Unknown benchmark 'nothing-v3'"),
+        ("unknown env", "Unknown Meta-World v3 env name 'nothing-v3' (nearest: "),
         ("missing file", "No model at"),
         ("missing file without --env", "No model at"),
         ("truncated", "is not a complete SB3 checkpoint"),

@@ -77,6 +77,7 @@ def evaluate_success(
     deterministic: bool = True,
     seed: int | None = None,
     terminate_on_success: bool = True,
+    env_kwargs: dict[str, Any] | None = None,
 ) -> SuccessResult:
     """Success rate of each task, Meta-World's official protocol (one episode per goal variation).
 
@@ -89,6 +90,8 @@ def evaluate_success(
     :param seed: seed of the env built from a spec (0 when None); for a given VecEnv, passed to ``env.seed``.
     :param terminate_on_success: end episodes at their first success, as Meta-World's evaluation does; the
         success rate is the same, and evaluation is faster.
+    :param env_kwargs: keyword arguments of :func:`sb3_mtte.envs.make_mt_env` for the env built from a spec
+        (``reward_function_version``: some Meta-World tasks measure success differently under ``"v1"``).
     :return: the per-task success rates and their mean.
     """
     if episodes_per_task < 1:
@@ -97,7 +100,7 @@ def evaluate_success(
     if owns_env:
         from sb3_mtte.envs import make_mt_env
 
-        env = make_mt_env(env_or_benchmark, seed=0 if seed is None else seed)
+        env = make_mt_env(env_or_benchmark, seed=0 if seed is None else seed, **(env_kwargs or {}))
     else:
         env = env_or_benchmark
         if seed is not None:

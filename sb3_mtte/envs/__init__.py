@@ -12,7 +12,7 @@ A single task is a valid multi-task env (``make_mt_env(["reach-v3"])``, or any g
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any
 
 import gymnasium as gym
@@ -24,19 +24,26 @@ from sb3_mtte.envs.metaworld_envs import (
     METAWORLD_BENCHMARKS,
     MT10_TASKS,
     MT20_TASKS,
+    MT25_TASKS,
     MT50_TASKS,
+    REWARD_FUNCTION_VERSIONS,
     MetaWorldExpertPolicy,
+    check_reward_function_version,
     make_metaworld_env_fns,
+    metaworld_task_names,
 )
 from sb3_mtte.envs.toy import TOY_BENCHMARKS, ToyOraclePolicy, make_toy_env_fns, parse_toy_name
 from sb3_mtte.envs.wrappers import MultiTaskWrapper, OneHotTaskWrapper
 
 BenchmarkSpec = str | Sequence[str]
-"""A benchmark name ("MT10", "MT20", "MT50", a toy name) or a list of Meta-World v3 env names."""
+"""A benchmark name ("MT10", "MT25", a toy name, "reach-v3_push-v3") or a list of Meta-World v3 env names."""
 
 
 def _valid_names() -> str:
-    return f"{sorted(METAWORLD_BENCHMARKS)}, {sorted(TOY_BENCHMARKS)} (optionally '-N'), or a list of {MT50_TASKS}"
+    return (
+        f"{sorted(METAWORLD_BENCHMARKS)}, {sorted(TOY_BENCHMARKS)} (optionally '-N'), or Meta-World v3 env names "
+        "(sb3_mtte.envs.MT50_TASKS) in a list or joined by '_'"
+    )
 
 
 def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list[Callable[[], gym.Env]]:
@@ -58,15 +65,30 @@ def _env_fns(benchmark: BenchmarkSpec, seed: int, **kwargs: Any) -> list[Callabl
     if isinstance(benchmark, str):
         toy = parse_toy_name(benchmark, n_tasks)
         if toy is not None:
+            reward_function_version(benchmark, kwargs)
             return make_toy_env_fns(toy[0], seed=seed, n_tasks=toy[1], **kwargs)
-        if benchmark.upper() not in METAWORLD_BENCHMARKS:
+        task_names = metaworld_task_names(benchmark)
+        if task_names is None:
             raise ValueError(f"Unknown benchmark {benchmark!r}; valid: {_valid_names()}.")
-        task_names = METAWORLD_BENCHMARKS[benchmark.upper()]
     else:
         task_names = list(benchmark)
     if n_tasks is not None and n_tasks != len(task_names):
         raise ValueError(f"n_tasks does not match the {len(task_names)} tasks of {benchmark!r}.")
     return make_metaworld_env_fns(task_names, seed=seed, **kwargs)
+
+
+def reward_function_version(benchmark: BenchmarkSpec, env_kwargs: Mapping[str, Any] | None = None) -> str | None:
+    """The Meta-World reward function that ``env_kwargs`` (keyword arguments of :func:`make_mt_env`) select for
+    ``benchmark``, Meta-World's default ``"v2"`` when they name none; None for a toy benchmark.
+
+    :raises ValueError: for a version Meta-World does not have, or one given to a toy benchmark.
+    """
+    kwargs = env_kwargs or {}
+    if not isinstance(benchmark, str) or parse_toy_name(benchmark) is None:
+        return check_reward_function_version(kwargs.get("reward_function_version", REWARD_FUNCTION_VERSIONS[0]))
+    if "reward_function_version" in kwargs:
+        raise ValueError(f"reward_function_version is a Meta-World option: leave it out for {benchmark!r}.")
+    return None
 
 
 def make_mt_env(
@@ -79,15 +101,17 @@ def make_mt_env(
 ) -> VecEnv:
     """Build a multi-task VecEnv: sub-env i runs task i and observes its state followed by the one-hot e_i.
 
-    :param benchmark: ``"MT10"``, ``"MT20"``, ``"MT50"``, a list of Meta-World v3 env names, or a toy benchmark
-        (``"toy-conflict"``, ``"toy-agree"``, optionally with the task count: ``"toy-conflict-6"``).
+    :param benchmark: ``"MT10"``, ``"MT20"``, ``"MT25"``, ``"MT50"``, a list of Meta-World v3 env names (or the
+        names joined by ``"_"``: ``"reach-v3_push-v3"``), or a toy benchmark (``"toy-conflict"``, ``"toy-agree"``,
+        optionally with the task count: ``"toy-conflict-6"``).
     :param seed: seed of the goal variations, of their sampling at every reset and of the envs: the same seed
         gives the same episodes for the same actions.
     :param vec_env_cls: SB3 VecEnv class (``DummyVecEnv`` or ``SubprocVecEnv``).
     :param vec_env_kwargs: keyword arguments of ``vec_env_cls`` (e.g. ``start_method`` for ``SubprocVecEnv``).
     :param monitor: wrap each sub-env in SB3's ``Monitor`` (episode return and length in ``info["episode"]``).
     :param kwargs: ``max_episode_steps`` (Meta-World 500, toy 50); ``render_mode`` (``"rgb_array"`` for video);
-        for Meta-World ``camera_name``, ``camera_id``, ``width``, ``height``; for toys ``n_tasks`` (default 4).
+        for Meta-World ``reward_function_version`` (``"v2"``, the default, or ``"v1"``), ``camera_name``,
+        ``camera_id``, ``width``, ``height``; for toys ``n_tasks`` (default 4).
     :raises ValueError: for an unknown benchmark or env name, or an env that breaks the multi-task layout.
     """
     env_fns = make_env_fns(benchmark, seed=seed, **kwargs)
@@ -117,7 +141,9 @@ __all__ = [
     "METAWORLD_BENCHMARKS",
     "MT10_TASKS",
     "MT20_TASKS",
+    "MT25_TASKS",
     "MT50_TASKS",
+    "REWARD_FUNCTION_VERSIONS",
     "TOY_BENCHMARKS",
     "BenchmarkSpec",
     "MetaWorldExpertPolicy",
@@ -127,4 +153,5 @@ __all__ = [
     "get_task_names",
     "make_env_fns",
     "make_mt_env",
+    "reward_function_version",
 ]

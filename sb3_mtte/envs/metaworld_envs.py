@@ -6,10 +6,15 @@ Benchmarks:
   among its MT10 tasks where the official MT10 has window-close; this package uses the official list.
 - ``MT20`` (:data:`MT20_TASKS`): the first 20 tasks of MT50 in MT50's order (the paper's MT20). Its goal
   variations are those MT50 draws for these tasks with the same seed.
+- ``MT25`` (:data:`MT25_TASKS`): Meta-World v3's MT25 (MT10 and 15 more tasks), in Meta-World's order.
 - ``MT50`` (:data:`MT50_TASKS`): all 50 tasks, in Meta-World's MT50 order.
 - ``DEV6`` (:data:`DEV6_TASKS`): the development benchmark, six tasks outside MT10 and MT20 in three pairs that
   share a scene (faucet-open/close, plate-slide/-back, handle-press/pull).
-- any list of distinct v3 env names, e.g. ``["reach-v3", "push-v3"]``.
+- any list of distinct v3 env names, e.g. ``["reach-v3", "push-v3"]``, also written as one string joined by
+  ``"_"``: ``"reach-v3_push-v3"`` (:func:`metaworld_task_names`).
+
+``reward_function_version`` picks Meta-World v3's reward functions (:data:`REWARD_FUNCTION_VERSIONS`): ``"v2"``,
+Meta-World's default, or ``"v1"``; some tasks (push, ...) also measure success differently under ``"v1"``.
 
 Each task has Meta-World's 50 goal variations (``metaworld.Task`` objects, generated from the seed the way
 ``metaworld.MT10(seed=...)`` does). The state is Meta-World's 39-d goal-observable observation; the one-hot,
@@ -24,6 +29,7 @@ reset takes about 8 ms. Meta-World's scripted experts score 0.98 on MT10 under :
 
 from __future__ import annotations
 
+import difflib
 import warnings
 from collections.abc import Callable, Sequence
 from functools import lru_cache, partial
@@ -67,6 +73,26 @@ MT50_TASKS: list[str] = [
 MT20_TASKS: list[str] = MT50_TASKS[:20]
 """The first 20 tasks of MT50 (the paper's MT20)."""
 
+MT25_TASKS: list[str] = [
+    *MT10_TASKS,
+    "coffee-pull-v3",
+    "pick-out-of-hole-v3",
+    "disassemble-v3",
+    "pick-place-wall-v3",
+    "basketball-v3",
+    "stick-pull-v3",
+    "button-press-wall-v3",
+    "faucet-open-v3",
+    "door-lock-v3",
+    "lever-pull-v3",
+    "sweep-into-v3",
+    "faucet-close-v3",
+    "coffee-button-v3",
+    "button-press-topdown-wall-v3",
+    "dial-turn-v3",
+]
+"""Meta-World v3's MT25 (MT10 followed by 15 more tasks), in Meta-World's order."""
+
 DEV6_TASKS: list[str] = [
     "faucet-open-v3",
     "faucet-close-v3",
@@ -81,13 +107,45 @@ task identity tells which way to move the object. Defaults are chosen on it, nev
 METAWORLD_BENCHMARKS: dict[str, list[str]] = {
     "MT10": MT10_TASKS,
     "MT20": MT20_TASKS,
+    "MT25": MT25_TASKS,
     "MT50": MT50_TASKS,
     "DEV6": DEV6_TASKS,
 }
 """Named Meta-World benchmark -> its task names."""
 
-METAWORLD_ENV_KWARGS = ("max_episode_steps", "render_mode", "camera_name", "camera_id", "width", "height")
+TASK_LIST_SEPARATOR = "_"
+"""Joins Meta-World v3 env names into one benchmark name: ``"reach-v3_push-v3"``."""
+
+REWARD_FUNCTION_VERSIONS = ("v2", "v1")
+"""Meta-World v3's reward functions (``reward_function_version``), its default first."""
+
+METAWORLD_ENV_KWARGS = (
+    "max_episode_steps",
+    "reward_function_version",
+    "render_mode",
+    "camera_name",
+    "camera_id",
+    "width",
+    "height",
+)
 """Keyword arguments :func:`make_metaworld_env_fns` accepts besides the seed."""
+
+
+def check_reward_function_version(version: Any) -> str:
+    """``version`` when it is one of :data:`REWARD_FUNCTION_VERSIONS`.
+
+    :raises ValueError: otherwise (Meta-World itself would silently use v1's rewards).
+    """
+    if version not in REWARD_FUNCTION_VERSIONS:
+        raise ValueError(
+            f"reward_function_version={version!r} is not a Meta-World v3 reward function: use "
+            f"{' or '.join(map(repr, REWARD_FUNCTION_VERSIONS))} (the default is {REWARD_FUNCTION_VERSIONS[0]!r})."
+        )
+    return version
+
+
+def _nearest_names(name: str) -> str:
+    return f"{name!r} (nearest: {', '.join(difflib.get_close_matches(name, MT50_TASKS, n=3, cutoff=0.0))})"
 
 
 def validate_task_names(task_names: Sequence[str]) -> list[str]:
@@ -95,23 +153,44 @@ def validate_task_names(task_names: Sequence[str]) -> list[str]:
 
     :param task_names: the names.
     :return: the names as a list.
-    :raises ValueError: on an unknown or repeated name.
+    :raises ValueError: on an unknown name (naming the nearest valid ones) or a repeated name.
     """
     names = list(task_names)
     unknown = [name for name in names if name not in MT50_TASKS]
     if unknown:
-        raise ValueError(f"Unknown Meta-World v3 env name(s) {unknown}; valid names: {MT50_TASKS}.")
+        raise ValueError(
+            f"Unknown Meta-World v3 env name {', '.join(map(_nearest_names, unknown))}; every name is in "
+            "sb3_mtte.envs.MT50_TASKS."
+        )
     if len(set(names)) != len(names):
         raise ValueError(f"Task names must be distinct (one sub-env per task), got {names}.")
     return names
+
+
+def is_task_list(name: str) -> bool:
+    """Whether a benchmark name is Meta-World v3 env names joined by :data:`TASK_LIST_SEPARATOR` (or one name)."""
+    return TASK_LIST_SEPARATOR in name or name.endswith("-v3")
+
+
+def metaworld_task_names(name: str) -> list[str] | None:
+    """Task names of a named Meta-World benchmark (:data:`METAWORLD_BENCHMARKS`, any case) or of a task list
+    (``"reach-v3_push-v3"``); None for any other name.
+
+    :raises ValueError: for a task list with an unknown or repeated name.
+    """
+    if name.upper() in METAWORLD_BENCHMARKS:
+        return list(METAWORLD_BENCHMARKS[name.upper()])
+    if is_task_list(name):
+        return validate_task_names(name.split(TASK_LIST_SEPARATOR))
+    return None
 
 
 @lru_cache(maxsize=4)
 def goal_variations(task_names: tuple[str, ...], seed: int) -> tuple[tuple[Any, ...], ...]:
     """Meta-World's 50 goal variations (``metaworld.Task``) of each task, generated as Meta-World's benchmarks do.
 
-    With the MT10 or MT50 list this is ``metaworld.MT10(seed=seed).train_tasks`` (resp. MT50); any other list
-    uses the same generator on its own tasks, so a prefix of MT50 (MT20) gets MT50's variations. Cached.
+    With the MT10, MT25 or MT50 list this is ``metaworld.MT10(seed=seed).train_tasks`` (resp. MT25, MT50); any
+    other list uses the same generator on its own tasks, so a prefix of MT50 (MT20) gets MT50's variations. Cached.
 
     :param task_names: the tasks, in order.
     :param seed: the benchmark seed.
@@ -121,10 +200,9 @@ def goal_variations(task_names: tuple[str, ...], seed: int) -> tuple[tuple[Any, 
     from metaworld import env_dict
 
     names = validate_task_names(task_names)
-    if names == MT10_TASKS:
-        tasks = metaworld.MT10(seed=seed).train_tasks
-    elif names == MT50_TASKS:
-        tasks = metaworld.MT50(seed=seed).train_tasks
+    benchmark = next((key for key in ("MT10", "MT25", "MT50") if names == METAWORLD_BENCHMARKS[key]), None)
+    if benchmark is not None:
+        tasks = getattr(metaworld, benchmark)(seed=seed).train_tasks
     else:
         classes = env_dict._get_env_dict(names)
         args_kwargs = env_dict._get_args_kwargs(env_dict.ALL_V3_ENVIRONMENTS, classes)
@@ -151,6 +229,7 @@ def make_metaworld_task_env(
     goals: Sequence[Any],
     seed: int = 0,
     max_episode_steps: int | None = None,
+    reward_function_version: str = REWARD_FUNCTION_VERSIONS[0],
     render_mode: str | None = None,
     camera_name: str | None = None,
     camera_id: int | None = None,
@@ -165,6 +244,7 @@ def make_metaworld_task_env(
     :param goals: the task's goal variations (``metaworld.Task`` objects).
     :param seed: benchmark seed; the env and its goal RNG get a seed derived from it and the task index.
     :param max_episode_steps: truncation length (Meta-World's 500 when None).
+    :param reward_function_version: Meta-World's reward functions, ``"v2"`` or ``"v1"``.
     :param render_mode: None, ``"rgb_array"``, ``"depth_array"`` or ``"human"``.
     :param camera_name: MuJoCo camera to render from (e.g. ``"corner"``).
     :param camera_id: MuJoCo camera id (alternative to ``camera_name``).
@@ -174,7 +254,12 @@ def make_metaworld_task_env(
     from metaworld.env_dict import ALL_V3_ENVIRONMENTS
 
     raw = ALL_V3_ENVIRONMENTS[task_name](
-        render_mode=render_mode, camera_name=camera_name, camera_id=camera_id, width=width, height=height
+        reward_function_version=reward_function_version,
+        render_mode=render_mode,
+        camera_name=camera_name,
+        camera_id=camera_id,
+        width=width,
+        height=height,
     )
     raw.set_task(goals[0])  # a goal-observable task first, so the observation bounds include the goal
     steps = int(max_episode_steps or raw.max_path_length)
@@ -202,6 +287,8 @@ def make_metaworld_env_fns(task_names: Sequence[str], seed: int = 0, **kwargs: A
     if unknown:
         valid = ", ".join(METAWORLD_ENV_KWARGS)
         raise TypeError(f"Unexpected keyword argument(s) {sorted(unknown)} for Meta-World; valid: {valid}.")
+    if "reward_function_version" in kwargs:
+        check_reward_function_version(kwargs["reward_function_version"])
     names = validate_task_names(task_names)
     goals = goal_variations(tuple(names), int(seed))
     return [

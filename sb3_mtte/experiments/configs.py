@@ -16,6 +16,8 @@ from typing import Any
 
 import yaml
 
+from sb3_mtte.envs.metaworld_envs import is_task_list
+from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, algo_classes, family_of
 
 CONFIG_DIR_NAME = "zoo_configs"
@@ -54,9 +56,10 @@ def family_config_path(algo: str) -> Path | None:
     return path if path.is_file() else None
 
 
-def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
+def zoo_hyperparameters(algo: str, env_ids: Iterable[str] = ()) -> dict[str, dict[str, Any]] | None:
     """Every env entry of a zoo key's hyperparameters (rl-zoo's file layout), or None for a key of no family.
 
+    :param env_ids: env ids to add an entry for when they are task lists (:func:`task_list_entry`).
     :raises FileNotFoundError: when the family's file is missing.
     """
     if family_of(algo) is None:
@@ -64,16 +67,44 @@ def zoo_hyperparameters(algo: str) -> dict[str, dict[str, Any]] | None:
     path = family_config_path(algo)
     if path is None:
         raise FileNotFoundError(f"No {CONFIG_DIR_NAME}/ file for {algo!r} found: pass -conf <file>.yml.")
-    base = yaml.safe_load(path.read_text())
-    if algo in FAMILIES:
-        return base
-    return {env_key: VARIANTS[algo].build.compose(env_key, entry) for env_key, entry in base.items()}
+    entries = yaml.safe_load(path.read_text())
+    if algo not in FAMILIES:
+        entries = {env_key: VARIANTS[algo].build.compose(env_key, entry) for env_key, entry in entries.items()}
+    for env_id in env_ids:
+        entry = None if env_id in entries else task_list_entry(entries, env_id)
+        if entry is not None:
+            entries[env_id] = entry
+    return entries
+
+
+TASK_LIST_REFERENCE = "MT10"
+"""The benchmark whose settings per task a task list (``--env reach-v3_push-v3``) trains with."""
+PER_TASK_KEYS = ("n_timesteps", "buffer_size", "learning_starts", "eval_freq", "save_freq")
+"""Hyperparameters that grow with the task count N (env steps and transitions over all tasks)."""
+
+
+def task_list_entry(entries: dict[str, dict[str, Any]], env_id: str) -> dict[str, Any] | None:
+    """The entry of a task-list env id (``reach-v3_push-v3-smoke``): :data:`TASK_LIST_REFERENCE`'s entry at the same
+    budget suffix with each of :data:`PER_TASK_KEYS` scaled to the list's N tasks and ``n_select`` (M) N // 2;
+    None for any other env id or without the reference entry."""
+    benchmark, suffix = split_env_id(env_id)
+    reference = TASK_LIST_REFERENCE if suffix is None else f"{TASK_LIST_REFERENCE}-{suffix}"
+    if not is_task_list(benchmark) or reference not in entries:
+        return None
+    n_tasks, n_reference = len(benchmark_task_names(benchmark)), len(benchmark_task_names(TASK_LIST_REFERENCE))
+    entry = dict(entries[reference])
+    for key in PER_TASK_KEYS:
+        if key in entry:
+            entry[key] = type(entry[key])(entry[key] * n_tasks / n_reference)
+    if "n_select" in entry:
+        entry["n_select"] = n_tasks // 2
+    return entry
 
 
 def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-conf") -> str | None:
     """The error for ``env_ids`` that the zoo key ``algo`` has no hyperparameter entry for, or None when it has
     every one (or is a key of no family, whose file the user gives)."""
-    entries = zoo_hyperparameters(algo)
+    entries = zoo_hyperparameters(algo, env_ids)
     missing = [env_id for env_id in env_ids if entries is not None and env_id not in entries]
     if not missing:
         return None
@@ -116,6 +147,7 @@ __all__ = [
     "find_config_dir",
     "hyperparameter_keys",
     "missing_entries_message",
+    "task_list_entry",
     "unknown_key_message",
     "zoo_hyperparameters",
 ]

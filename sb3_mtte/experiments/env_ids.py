@@ -1,10 +1,11 @@
 """Env ids of the benchmarks and the VecEnv "class" that makes sub-env i run task i.
 
-Env ids ``MT10``, ``MT20``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree`` (and
-``toy-conflict-<N>``), each also with a budget suffix (``MT10-smoke``): the suffix picks another entry of the
-hyperparameter file and names the run folder, the benchmark is the same. rl-zoo builds every sub-env with the same
-constructor; :class:`MultiTaskVecEnvFactory` (the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's
-``--vec-env`` choice inside) tells constructor i which task to build.
+Env ids ``MT10``, ``MT20``, ``MT25``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree``
+(and ``toy-conflict-<N>``), any list of Meta-World v3 env names joined by ``_`` (``reach-v3_push-v3``), each also with
+a budget suffix (``MT10-smoke``): the suffix picks another entry of the hyperparameter file and names the run folder,
+the benchmark is the same. rl-zoo builds every sub-env with the same constructor; :class:`MultiTaskVecEnvFactory` (the
+role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's ``--vec-env`` choice inside) tells constructor i which
+task to build.
 """
 
 from __future__ import annotations
@@ -16,14 +17,15 @@ from typing import Any
 import gymnasium as gym
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
-from sb3_mtte.envs import METAWORLD_BENCHMARKS, TOY_BENCHMARKS, make_env_fns
+from sb3_mtte.envs import TOY_BENCHMARKS, make_env_fns
+from sb3_mtte.envs.metaworld_envs import is_task_list, metaworld_task_names
 from sb3_mtte.envs.toy import parse_toy_name
 from sb3_mtte.experiments.callbacks import EpisodeReporter
 
 BUDGET_SUFFIXES = ("smoke", "cpu", "100k")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
 
-STANDARD_BENCHMARKS = ("MT10", "MT20", "MT50", "DEV6", "toy-conflict", "toy-agree")
+STANDARD_BENCHMARKS = ("MT10", "MT20", "MT25", "MT50", "DEV6", "toy-conflict", "toy-agree")
 
 
 def split_env_id(env_id: str) -> tuple[str, str | None]:
@@ -35,20 +37,19 @@ def split_env_id(env_id: str) -> tuple[str, str | None]:
 
 
 def benchmark_task_names(benchmark: str) -> list[str]:
-    """Task names of a benchmark name (``"MT10"``, ``"toy-conflict-6"``, ...), without building any env.
+    """Task names of a benchmark name (``"MT10"``, ``"toy-conflict-6"``, ``"reach-v3_push-v3"``, ...), without
+    building any env.
 
-    :raises ValueError: for an unknown benchmark.
+    :raises ValueError: for an unknown benchmark, or a task list with an unknown name (naming the nearest ones).
     """
 
     toy = parse_toy_name(benchmark)
     if toy is not None:
         return TOY_BENCHMARKS[toy[0]](toy[1])[0]
-    if benchmark.upper() in METAWORLD_BENCHMARKS:
-        return list(METAWORLD_BENCHMARKS[benchmark.upper()])
-    raise ValueError(
-        f"Unknown benchmark {benchmark!r}: use MT10, MT20, MT50, DEV6, toy-conflict, toy-agree or toy-<name>-<N>, "
-        f"optionally followed by a budget suffix ({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
-    )
+    task_names = metaworld_task_names(benchmark)
+    if task_names is not None:
+        return task_names
+    raise ValueError(f"Unknown benchmark {benchmark!r}: use {benchmark_help()}")
 
 
 def env_id_n_tasks(env_id: str) -> int:
@@ -56,10 +57,17 @@ def env_id_n_tasks(env_id: str) -> int:
     return len(benchmark_task_names(split_env_id(env_id)[0]))
 
 
-def benchmark_help() -> str:
-    """The env ids the launcher accepts, in words."""
+def benchmark_help(env_id: str | None = None) -> str:
+    """The env ids the launcher accepts, in words; for a task list ``env_id`` with an unknown name, the nearest
+    valid names instead."""
+    if env_id is not None and is_task_list(split_env_id(env_id)[0]):
+        try:
+            metaworld_task_names(split_env_id(env_id)[0])
+        except ValueError as error:
+            return str(error)
     return (
-        "MT10, MT20, MT50, DEV6, toy-conflict, toy-agree or toy-<conflict|agree>-<N>, optionally with a budget suffix "
+        "MT10, MT20, MT25, MT50, DEV6, toy-conflict, toy-agree, toy-<conflict|agree>-<N> or Meta-World v3 env names "
+        "joined by '_' (reach-v3_push-v3), optionally with a budget suffix "
         f"({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
     )
 

@@ -7,9 +7,10 @@ Usage::
 MODEL is a checkpoint of MTSAC or MTSACTE (the class is read from the zip). Each task runs ``--episodes``
 episodes, one per goal variation in order, with deterministic actions (:func:`sb3_mtte.evaluate_success`).
 The env and the benchmark seed default to those of the run folder holding the model (its ``run_info.json``),
-else seed 0; an env id with a budget suffix (``MT10-smoke``) names its benchmark (``MT10``). An ``--env`` whose
-tasks are not the model's (``toy-agree`` for a ``toy-conflict`` model) is refused unless ``--other-benchmark``
-is given, which evaluates it there with a warning.
+else seed 0; the run's Meta-World reward functions are kept (they decide success in some tasks). An env id with a
+budget suffix (``MT10-smoke``) names its benchmark (``MT10``). An ``--env`` whose tasks are not the model's
+(``toy-agree`` for a ``toy-conflict`` model) is refused unless ``--other-benchmark`` is given, which evaluates it
+there with a warning.
 
 The per-task table is printed and written as JSON beside the model: ``success.json`` for the run's final
 model, ``success_<model name>.json`` for any other file (checkpoints, ``best_model.zip``), and
@@ -32,7 +33,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
-from sb3_mtte.envs import MT50_TASKS
+from sb3_mtte.envs import MT50_TASKS, reward_function_version
 from sb3_mtte.experiments import command_prog, run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
@@ -97,8 +98,12 @@ def evaluate_model(
     _check_task_count(model_path, data, env_id, benchmark)
     elsewhere = _check_benchmark(model_path, data, info, env_id, benchmark, other_benchmark)
     model = _load_model_of_run(model_path, info, device)
+    version = (info or {}).get("reward_function_version")
+    env_kwargs = {} if version is None else {"reward_function_version": version}
     start = time.time()
-    result = evaluate_success(model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed)
+    result = evaluate_success(
+        model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed, env_kwargs=env_kwargs
+    )
     record = {
         **result.as_dict(),
         "success_rate": [float(r) for r in result.success_rate],
@@ -109,6 +114,7 @@ def evaluate_model(
         "label": (info or {}).get("label"),
         "env_id": env_id,
         "benchmark": benchmark,
+        "reward_function_version": reward_function_version(benchmark, env_kwargs),
         "seed": seed,
         "run_seed": (info or {}).get("seed"),
         "episodes_per_task": episodes,

@@ -146,7 +146,9 @@ def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None)
     return str(resume_dir), dict(info.get("launcher") or {})
 
 
-def _launch_options(ours: argparse.Namespace, zoo_argv: list[str], algo: str, saved: dict[str, Any]) -> LaunchOptions:
+def _launch_options(
+    ours: argparse.Namespace, zoo_argv: list[str], algo: str, env_id: str, saved: dict[str, Any]
+) -> LaunchOptions:
     """Launcher options from the command line, else the resumed run's, else the defaults."""
 
     def choose(given: Any, key: str, default: Any) -> Any:
@@ -160,7 +162,7 @@ def _launch_options(ours: argparse.Namespace, zoo_argv: list[str], algo: str, sa
         keep_buffers=choose(ours.keep_buffers, "keep_buffers", 1),
         align_checkpoints=choose(None if no_align is None else not no_align, "align_checkpoints", True),
         tensorboard=choose(None if no_tensorboard is None else not no_tensorboard, "tensorboard", True),
-        hyperparams=None if uses_conf else zoo_hyperparameters(algo),
+        hyperparams=None if uses_conf else zoo_hyperparameters(algo, [env_id]),
     )
 
 
@@ -184,7 +186,7 @@ def train(argv: Sequence[str]) -> None:
     if env_id is None:
         raise SystemExit(f"--env is required: {benchmark_help()}")
     if not register_env_id(env_id):
-        raise SystemExit(f"{env_id!r} is not a benchmark of sb3_mtte: {benchmark_help()}")
+        raise SystemExit(f"{env_id!r} is not a benchmark of sb3_mtte: {benchmark_help(env_id)}")
     algo = check_algo(flag_value(zoo_argv, "--algo"))
     check_budget(zoo_argv)
     check_conf_file(zoo_argv)
@@ -192,7 +194,7 @@ def train(argv: Sequence[str]) -> None:
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
     if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
-    launch = _launch_options(ours, zoo_argv, algo, saved)
+    launch = _launch_options(ours, zoo_argv, algo, env_id, saved)
     missing = None if resume_dir or launch.hyperparams is None else missing_entries_message(algo, [env_id])
     if missing:
         raise SystemExit(missing)

@@ -26,6 +26,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
+from sb3_mtte.envs import reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
@@ -81,6 +82,15 @@ class MultiTaskExperimentManager(ExperimentManager):
         self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
         self.eval_callback: ZooEvalCallback | None = None
         self._eval_env: VecEnv | None = None
+        self._check_reward_function_version()
+
+    def _check_reward_function_version(self) -> None:
+        """Refuse a ``reward_function_version`` Meta-World lacks (or one given to a toy) before any folder is made."""
+        for flag, env_kwargs in (("--env-kwargs", self.env_kwargs), ("--eval-env-kwargs", self.eval_env_kwargs)):
+            try:
+                reward_function_version(self.benchmark, env_kwargs)
+            except ValueError as error:
+                raise SystemExit(f"{flag}: {error}") from None
 
     def _restore_run_args(self) -> None:
         """Resuming: take the run's own command-line settings (its ``args.yml``) unless given again now."""
@@ -288,6 +298,7 @@ class MultiTaskExperimentManager(ExperimentManager):
             n_tasks=self.n_tasks,
             task_names=get_task_names(env) if env is not None else benchmark_task_names(self.benchmark),
             benchmark_seed=self.seed,
+            reward_function_version=reward_function_version(self.benchmark, self.env_kwargs),
             episode_length=episode_length,
             n_timesteps=self.n_timesteps,
             run_dir=os.path.abspath(self.save_path),

@@ -5,7 +5,8 @@ repository. Its fields (format :data:`RECORD_VERSION`):
 
 - ``record_version``; ``algo`` (zoo key), ``label``, ``env_id`` (e.g. ``MT10-cpu``), ``benchmark`` (e.g. ``MT10``),
   ``seed``, ``task_names``, ``n_tasks``, ``episode_length``, ``started`` (when the run started: with env id, label and
-  seed it names the run);
+  seed it names the run), ``reward_function_version`` (Meta-World's reward functions, null for a toy benchmark; a
+  record without the field was made with ``"v2"``);
 - ``budget``: ``n_timesteps`` (planned env steps, all tasks), ``timesteps`` (reached) and ``finished``;
 - ``hyperparams`` (every hyperparameter as loaded), ``versions`` (packages), ``git`` (commit, branch, dirty flag),
   ``resumes`` (how many times the run was resumed);
@@ -18,8 +19,8 @@ repository. Its fields (format :data:`RECORD_VERSION`):
 - ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean and
   z's std; the mean of mu, of w and of C_s membership per task over the run.
 
-Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (the default ``--out`` is
-``docs/records``)::
+Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
+Meta-World's v1 rewards; the default ``--out`` is ``docs/records``)::
 
     sb3-mtte record RUNS_DIR [--out docs/records]
 """
@@ -38,7 +39,7 @@ from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.run_info import read_json
-from sb3_mtte.experiments.runs import Run, Series, discover_runs, task_scalar
+from sb3_mtte.experiments.runs import Run, Series, discover_runs, results_benchmark, task_scalar
 
 RECORD_VERSION = 2
 DEFAULT_RECORDS_DIR = Path("docs/records")
@@ -107,6 +108,7 @@ def run_record(run: Run) -> dict[str, Any]:
         "task_names": run.task_names,
         "n_tasks": run.n_tasks,
         "episode_length": info.get("episode_length"),
+        "reward_function_version": run.reward_function_version,
         "started": info.get("started"),
         "budget": {
             "n_timesteps": info.get("n_timesteps", info.get("hyperparams", {}).get("n_timesteps")),
@@ -133,8 +135,10 @@ def run_record(run: Run) -> dict[str, Any]:
 
 
 def record_path(record: dict[str, Any], out: Path) -> Path:
-    """``out/<env id>/<algo>_seed<k>.json``."""
-    return out / safe_name(str(record["env_id"])) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
+    """``out/<benchmark>/<algo>_seed<k>.json``, the benchmark of :func:`~sb3_mtte.experiments.runs.results_benchmark`
+    (the env id on Meta-World's default rewards)."""
+    bench = results_benchmark(str(record["env_id"]), record.get("reward_function_version"))
+    return out / safe_name(bench) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
 
 def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -> list[Path]:
@@ -180,7 +184,18 @@ def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
 
 def run_from_record(record: dict[str, Any], path: Path) -> Run:
     """A :class:`Run` holding what a record keeps (no scalars or negative-transfer log), for the figures and tables."""
-    keys = ("algo", "label", "env_id", "benchmark", "seed", "task_names", "n_tasks", "episode_length", "started")
+    keys = (
+        "algo",
+        "label",
+        "env_id",
+        "benchmark",
+        "seed",
+        "task_names",
+        "n_tasks",
+        "episode_length",
+        "started",
+        "reward_function_version",
+    )
     info = {key: record.get(key) for key in keys}
     info["hyperparams"] = record.get("hyperparams") or {}
     info["git"] = record.get("git") or {}

@@ -51,12 +51,14 @@ OURS_ALGO = "mtsacte"
 @dataclass
 class BenchmarkStatistics:
     """Final success of one benchmark's algorithms: ``scores`` label -> ``(runs, tasks)``, the mean and IQM of each
-    with its interval, and P(Ours > label) for every other label (empty without Ours)."""
+    with its interval, P(Ours > label) for every other label (empty without Ours), and the Meta-World reward
+    functions of the runs (empty off Meta-World)."""
 
     scores: dict[str, np.ndarray]
     aggregates: dict[str, dict[str, Estimate]]
     ours: str | None
     improvement: dict[str, Estimate]
+    reward_functions: tuple[str, ...] = ()
 
 
 def ours_label(groups: dict[str, list[Run]]) -> str | None:
@@ -76,7 +78,9 @@ def benchmark_statistics(
     ours = ours_label({label: groups[label] for label in scores})
     baselines = {label: matrix for label, matrix in scores.items() if label != ours}
     improvement = improvement_probabilities(scores[ours], baselines, reps, seed) if ours and baselines else {}
-    return BenchmarkStatistics(scores, aggregate_estimates(scores, reps, seed) if scores else {}, ours, improvement)
+    versions = {run.reward_function_version for label in scores for run in groups[label]} - {None}
+    aggregates = aggregate_estimates(scores, reps, seed) if scores else {}
+    return BenchmarkStatistics(scores, aggregates, ours, improvement, tuple(sorted(versions)))
 
 
 def _cell(estimate: Estimate | None, scale: float = 100.0, digits: int = 1) -> str:
@@ -94,6 +98,8 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
     if stats.improvement:
         note += f"; P({stats.ours} > X): probability that a run of {stats.ours} beats a run of X on a task"
     note += ". A run's final success is its final evaluation (success.json) when present, else its last evaluation."
+    if stats.reward_functions:
+        note += f" Meta-World reward function {' and '.join(stats.reward_functions)}."
     if published:
         by_source: dict[str, list[str]] = {}
         for label, source in paper_sources().items():

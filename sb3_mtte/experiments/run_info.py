@@ -4,7 +4,9 @@
 
 - ``algo`` (the zoo algorithm key, e.g. ``"mtsac_mh"``), ``label`` (the paper's name, e.g. ``"SAC-MT-MH"``),
   ``algorithm_class``, ``env_id`` (e.g. ``"MT10-smoke"``), ``benchmark`` (e.g. ``"MT10"``), ``n_tasks``,
-  ``task_names``, ``seed``, ``benchmark_seed``, ``episode_length``, ``n_timesteps``;
+  ``task_names``, ``seed``, ``benchmark_seed``, ``reward_function_version`` (Meta-World's reward functions, ``"v2"``
+  or ``"v1"``; null for a toy benchmark; runs that predate the field used ``"v2"``), ``episode_length``,
+  ``n_timesteps``;
 - ``hyperparams`` (as loaded, JSON-friendly), ``command``, ``zoo_args``;
 - ``versions`` (python, sb3_mtte, torch, stable_baselines3, rl_zoo3, gymnasium, metaworld, numpy, mujoco),
   ``git`` (commit, dirty flag and branch of the source tree of ``sb3_mtte``), ``host``, ``device``;

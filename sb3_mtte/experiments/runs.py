@@ -25,6 +25,7 @@ import numpy as np
 from tensorboard.backend.event_processing import event_accumulator
 
 from sb3_mtte.common.utils import task_log_key
+from sb3_mtte.envs import MT50_TASKS, REWARD_FUNCTION_VERSIONS
 from sb3_mtte.experiments.run_info import RUN_INFO_FILE, read_json
 from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
@@ -101,6 +102,15 @@ class Run:
         return self.info.get("seed")
 
     @property
+    def reward_function_version(self) -> str | None:
+        """Meta-World's reward functions of the run (runs and records that predate the field used the default,
+        ``"v2"``); None off Meta-World."""
+        version = self.info.get("reward_function_version")
+        if version is None and self.task_names and set(self.task_names) <= set(MT50_TASKS):
+            return REWARD_FUNCTION_VERSIONS[0]
+        return version
+
+    @property
     def task_names(self) -> list[str]:
         names = self.info.get("task_names")
         if not names and self.evaluations is not None:
@@ -142,11 +152,20 @@ def discover_runs(runs_dir: str | Path) -> list[Run]:
     return [load_run(p) for p in paths]
 
 
+def results_benchmark(env_id: str, reward_function_version: str | None) -> str:
+    """The benchmark a run's results are drawn under: its env id, followed by its Meta-World reward functions when
+    they are not the default (``MT10-cpu-reward-v1``), so that runs of different rewards never share a table."""
+    if reward_function_version in (None, REWARD_FUNCTION_VERSIONS[0]):
+        return env_id
+    return f"{env_id}-reward-{reward_function_version}"
+
+
 def group_runs(runs: Sequence[Run]) -> dict[str, dict[str, list[Run]]]:
-    """benchmark -> algorithm label -> runs (its seeds)."""
+    """benchmark (:func:`results_benchmark`) -> algorithm label -> runs (its seeds)."""
     groups: dict[str, dict[str, list[Run]]] = {}
     for run in runs:
-        groups.setdefault(run.benchmark, {}).setdefault(run.label, []).append(run)
+        bench = results_benchmark(run.benchmark, run.reward_function_version)
+        groups.setdefault(bench, {}).setdefault(run.label, []).append(run)
     return groups
 
 

@@ -83,11 +83,11 @@ _CAGRAD_TABLE3 = (
 # Cranial-XIX/CAGrad mtrl/mtrl_files/run.sh): one critic and one entropy coefficient for every task
 # (should_use_disentangled_alpha=False), the method applied to the critic, actor and entropy-coefficient losses.
 _SURGERY_AUTHORS = {"critic_arch": "shared", "ent_coef_arch": "shared"}
-CAGRAD_C: dict[str, float] = {"MT10*": 0.9, "MT20*": 0.9, "MT50*": 0.5, "DEV6*": 0.9, "toy-*": 0.9}
+CAGRAD_C: dict[str, float] = {"MT10*": 0.9, "MT20*": 0.9, "MT25*": 0.9, "MT50*": 0.5, "DEV6*": 0.9, "toy-*": 0.9}
 """CAGrad's c per env entry pattern (zoo key ``mtsac_cagrad``): the authors' Meta-World commands (Cranial-XIX/CAGrad,
-``mtrl/mtrl_files/run.sh``, ``cagrad_method=cagrad``) run MT10 with c = 0.9 and MT50 with c = 0.5. MT20, DEV6 and the
-toy have no command of theirs and take MT10's value: MT10 is the nearest task count, and the authors' solver treats
-every task count but 50 as MT10's (its step size)."""
+``mtrl/mtrl_files/run.sh``, ``cagrad_method=cagrad``) run MT10 with c = 0.9 and MT50 with c = 0.5. MT20, MT25, DEV6
+and the toy have no command of theirs and take MT10's value: MT10 is the nearest task count, and the authors' solver
+treats every task count but 50 as MT10's (its step size). A task list takes MT10's entry, so c = 0.9."""
 # MOORE's and PaCo's MT10 success as their papers report it (MT10-rand, Meta-World v2); the "reported" column of
 # Meta-World+'s multi-task table lists the same values beside its own re-runs.
 _REPORTED = (
