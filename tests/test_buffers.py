@@ -345,3 +345,52 @@ def test_built_by_sb3_sac():
     s = buf.sample(8)
     assert s.observations.shape == (n_tasks, 8, 3)
     assert buf.sample_top_k(8).rewards.shape == (n_tasks, 8)
+
+
+# ---------------------------------------------------------------------------------------------- storage
+@pytest.mark.parametrize("storage", ["device", "pinned", "host"])
+def test_every_storage_samples_the_host_batches_and_pickles_its_arrays(tmp_path, storage):
+    """A copy on the device (here the CPU) is written row by row, gathered by the same numpy draw, made again from
+    the arrays after a load, and never pickled; every storage gives the host's batches bit for bit, wrapping
+    included."""
+    host, other = top_k_buffer(), top_k_buffer(storage=storage)
+    streams = constant_streams(3, 70)  # 50 rows per task: the buffer wraps
+    for buf in (host, other):
+        feed(buf, streams, t0=TOPK_T)
+    assert (other._device_copy is not None) == (storage == "device")
+    save_to_pkl(tmp_path / "buffer.pkl", other)
+    loaded = load_from_pkl(tmp_path / "buffer.pkl")
+    assert loaded._device_copy is None and loaded.storage == storage
+    for buf in (other, loaded):
+        for method in ("sample", "sample_top_k"):
+            np.random.seed(3)
+            expected = getattr(host, method)(16)
+            np.random.seed(3)
+            for a, b in zip(getattr(buf, method)(16), expected, strict=True):
+                assert a.dtype == b.dtype and th.equal(a, b)
+    if storage == "device":
+        assert all(
+            th.equal(loaded._device_copy.tensors[k], th.as_tensor(getattr(host, k))) for k in ("rewards", "dones")
+        )
+
+
+def test_auto_storage_is_the_host_on_a_cpu_and_an_unknown_storage_is_refused():
+    buf = top_k_buffer(storage="auto")
+    feed(buf, constant_streams(3, 2))
+    assert buf._resolved_storage == "host" and buf._device_copy is None
+    with pytest.raises(ValueError, match="storage must be one of"):
+        top_k_buffer(storage="gpu")
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+@pytest.mark.parametrize("storage", ["device", "pinned"])
+def test_cuda_storages_sample_the_host_batches(storage):
+    host = top_k_buffer()
+    other = MultiTaskReplayBuffer(150, OBS_SPACE, ACT_SPACE, device="cuda", n_envs=3, top_k=2, storage=storage)
+    for buf in (host, other):
+        feed(buf, constant_streams(3, 70), t0=TOPK_T)
+    np.random.seed(5)
+    expected = host.sample(16)
+    np.random.seed(5)
+    got = other.sample(16)
+    assert all(a.device.type == "cuda" and th.equal(a.cpu(), b) for a, b in zip(got, expected, strict=True))

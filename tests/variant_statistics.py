@@ -57,22 +57,23 @@ CASES: dict[str, tuple[type, str, dict[str, Any]]] = {
     "mtsacte_one_pass": (MTSACTE, "MlpPolicy", {**_TE, "nt_chunk_size": None}),
     "mtsacte_gradient_dot": (MTSACTE, "MlpPolicy", {**_TE, "nt_estimator": "gradient_dot"}),
 }
+HOST_READING = ("pcgrad", "pcgrad_actor", "cagrad", "cagrad_actor", "paco", "paco_collapse")
+"""Cases whose update reads the GPU on the host (gradient surgery's solve, PaCo's reset): no CUDA graph."""
+CAPTURABLE_CASES = {name: case for name, case in CASES.items() if name not in HOST_READING}
+CAPTURABLE_CASES["paco_without_reset"] = (
+    MTSAC,
+    "PaCoPolicy",
+    {"policy_kwargs": {**SMALL, "task_loss_threshold": None}},
+)
 _COUNTS = "mu"  # integer counts: compared exactly
 
 
 def build_case(name: str, **overrides: Any) -> Any:
-    algorithm, policy, kwargs = CASES[name]
-    kwargs = {"policy_kwargs": SMALL, **kwargs, **overrides}
+    algorithm, policy, kwargs = CASES[name] if name in CASES else CAPTURABLE_CASES[name]
+    kwargs = {"policy_kwargs": SMALL, "device": "cpu", **kwargs, **overrides}
     env = make_mt_env("toy-conflict", seed=0)
     return algorithm(
-        policy,
-        env,
-        learning_starts=4 * START,
-        batch_size=16,
-        buffer_size=4 * VECTOR_STEPS,
-        seed=0,
-        device="cpu",
-        **kwargs,
+        policy, env, learning_starts=4 * START, batch_size=16, buffer_size=4 * VECTOR_STEPS, seed=0, **kwargs
     )
 
 

@@ -10,6 +10,9 @@ keeps that layout and changes three things:
 * Per task, the K highest-return complete episodes are copied into a side store that
   :meth:`MultiTaskReplayBuffer.sample_top_k` samples from (top-K replay). The store lives in the buffer
   object, so SB3's ``save_replay_buffer`` / ``load_replay_buffer`` keep it.
+
+On a GPU the main buffer's transitions also live on the device (``storage``, :mod:`sb3_mtte.common.device_storage`),
+where batches are gathered.
 """
 
 from __future__ import annotations
@@ -24,6 +27,8 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
+
+from sb3_mtte.common.device_storage import DeviceStorage, resolve_storage, to_device
 
 # Per-transition arrays of the main buffer that the top-K store copies, in this order.
 _FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
@@ -105,6 +110,10 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         (None keeps all); ``n_episodes`` always counts all
     :param detect_episode_breaks: discard a running episode when a column's observations are not
         continuous (see above)
+    :param storage: where batches are gathered: ``"host"`` (numpy, as SB3), ``"device"`` (a copy of the transitions
+        on ``device``), ``"pinned"`` (gathered on the host into page-locked memory, copied without waiting) or
+        ``"auto"``: the device when a CUDA device holds the buffer in half its free memory, else pinned; the host
+        on a CPU. The numpy arrays stay what ``save_replay_buffer`` writes; the numbers are the same for every one.
     """
 
     def __init__(
@@ -119,6 +128,7 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         top_k: int = 0,
         max_episode_history: int | None = None,
         detect_episode_breaks: bool = True,
+        storage: str = "auto",
     ):
         if optimize_memory_usage:
             raise ValueError("MultiTaskReplayBuffer does not support optimize_memory_usage=True")
@@ -135,6 +145,10 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         )
         self.top_k = top_k
         self.detect_episode_breaks = detect_episode_breaks
+        resolve_storage(storage, th.device("cpu"), 0)  # an unknown storage is refused here
+        self.storage = storage
+        self._resolved_storage: str | None = None
+        self._device_copy: DeviceStorage | None = None
         # Running episode of each task.
         self._ep_return = np.zeros(self.n_envs, dtype=np.float64)
         self._ep_len = np.zeros(self.n_envs, dtype=np.int64)
@@ -175,6 +189,9 @@ class MultiTaskReplayBuffer(ReplayBuffer):
             self._ep_return[broken] = 0.0
             self._ep_len[broken] = 0
         super().add(obs, next_obs, action, reward, done, infos)
+        device_copy = self._on_device()
+        if device_copy is not None:
+            device_copy.write(row, {name: getattr(self, name) for name in _FIELDS})
         self._ep_return += np.asarray(reward, dtype=np.float64).reshape(self.n_envs)
         self._ep_len += 1
         for task in np.flatnonzero(np.asarray(done).reshape(self.n_envs)):
@@ -252,6 +269,10 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         """
         upper_bound = self.buffer_size if self.full else self.pos
         rows = np.random.randint(0, upper_bound, size=(self.n_envs, batch_size))
+        device_copy = self._on_device() if env is None else None
+        if device_copy is not None:
+            obs, next_obs, actions, rewards, dones, timeouts = device_copy.gather(rows).values()
+            return MultiTaskReplayBufferSamples(obs, actions, next_obs, dones * (1 - timeouts), rewards)
         cols = np.arange(self.n_envs)[:, None]
         return self._make_samples([getattr(self, name)[rows, cols] for name in _FIELDS], env)
 
@@ -293,7 +314,31 @@ class MultiTaskReplayBuffer(ReplayBuffer):
             dones * (1 - timeouts),
             self._normalize_reward(rewards, env),
         )
+        if self._on_device() is None and self._resolved_storage == "pinned":
+            return MultiTaskReplayBufferSamples(*(to_device(array, self.device) for array in data))
         return MultiTaskReplayBufferSamples(*(self.to_torch(array, copy=False) for array in data))
+
+    # ------------------------------------------------------------------ storage
+    def _on_device(self) -> DeviceStorage | None:
+        """The copy of the transitions on the device when the storage resolves to ``"device"`` (made at first use,
+        also after a load, from the arrays), else None."""
+        if self._resolved_storage is None:
+            n_bytes = sum(getattr(self, name).nbytes for name in _FIELDS)
+            self._resolved_storage = resolve_storage(self.storage, th.device(self.device), n_bytes)
+        if self._resolved_storage == "device" and self._device_copy is None:
+            self._device_copy = DeviceStorage({name: getattr(self, name) for name in _FIELDS}, th.device(self.device))
+        return self._device_copy
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        state["_device_copy"] = state["_resolved_storage"] = None  # the arrays are the record; a load copies them
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        state.setdefault("storage", "auto")  # a buffer saved before storages existed
+        state.setdefault("_resolved_storage", None)
+        state.setdefault("_device_copy", None)
+        self.__dict__.update(state)
 
     # ------------------------------------------------------------------ introspection
     def episode_returns(self, task: int) -> np.ndarray:

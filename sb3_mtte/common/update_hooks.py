@@ -29,6 +29,8 @@ class UpdateHook:
 
     combines_gradients: bool = False
     """Whether :meth:`combine_gradients` replaces the gradient of ``sum_i w_i L_i`` for the shared parameters."""
+    capturable: bool = True
+    """Whether the hook's part of an update runs on the device alone (no read on the host): a CUDA graph can hold it."""
 
     def attach(self, model: Any) -> None:
         """Called once the algorithm's networks exist (and again after ``load``)."""
@@ -60,6 +62,10 @@ class UpdateHooks(UpdateHook):
             raise ValueError(f"At most one update hook may combine the task gradients, got {names}.")
         self.combining = combining[0] if combining else None
         self.combines_gradients = self.combining is not None
+
+    @property
+    def capturable(self) -> bool:  # type: ignore[override]
+        return all(hook.capturable for hook in self.hooks)
 
     def attach(self, model: Any) -> None:
         for hook in self.hooks:
@@ -93,6 +99,7 @@ class GradientSurgery(UpdateHook):
     """
 
     combines_gradients = True
+    capturable = False  # the combination is solved on the host from the Gram matrix
 
     def __init__(self, method: str, cagrad_c: float = 0.5) -> None:
         self.method, self.cagrad_c = method, cagrad_c
@@ -122,6 +129,10 @@ class CollapseReset(UpdateHook):
         self.policy = policy
         self.collapsed: th.Tensor | None = None
         """``(N,)`` bool, the tasks masked in the running update (None when none)."""
+
+    @property
+    def capturable(self) -> bool:  # type: ignore[override]
+        return self.policy.task_loss_threshold is None  # else the reset's shapes follow the collapsed tasks
 
     def loss_mask(self, task_losses: th.Tensor) -> th.Tensor:
         threshold = self.policy.task_loss_threshold

@@ -33,7 +33,6 @@ from sb3_mtte.common.utils import (
     check_not_gymnasium_vector_env,
     check_one_hot,
     get_task_names,
-    polyak_update,
 )
 from sb3_mtte.mtsac.entropy import EntropyCoefMixin, check_ent_coef_arch
 from sb3_mtte.mtsac.moore import MOOREPolicy
@@ -41,6 +40,7 @@ from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
 from sb3_mtte.mtsac.task_logs import PerTaskLogMixin
 from sb3_mtte.mtsac.task_steps import TaskStepMixin
+from sb3_mtte.mtsac.update_path import UpdatePathMixin, check_update_path
 from sb3_mtte.openmp import warn_if_spinning
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
@@ -51,7 +51,7 @@ def check_q_loss_clip(q_loss_clip: float | None) -> None:
         raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
 
 
-class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm):
+class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, OffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
@@ -88,6 +88,8 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         entropy coefficient when ``ent_coef_arch="shared"`` follows the method's combination of the per-task
         gradients.
     :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
+    :param update_path: ``"auto"`` (a CUDA graph of the update on CUDA where the update allows it, else eager),
+        ``"eager"`` or ``"cuda_graph"`` (:mod:`sb3_mtte.mtsac.update_path`). Same numbers on either path.
     :param action_noise: optional exploration noise.
     :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
     :param replay_buffer_kwargs: its keyword arguments.
@@ -133,6 +135,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         q_loss_clip: float | None = None,
         gradient_surgery: str | None = None,
         cagrad_c: float = 0.5,
+        update_path: str = "auto",
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -150,6 +153,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         check_q_loss_clip(q_loss_clip)
         check_gradient_surgery(gradient_surgery, cagrad_c)
         check_ent_coef_arch(ent_coef_arch)
+        check_update_path(update_path)
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]
@@ -182,6 +186,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         self.q_loss_clip = q_loss_clip
         self.gradient_surgery = gradient_surgery
         self.cagrad_c = cagrad_c
+        self.update_path = update_path
         self.ent_coef = ent_coef
         self.target_entropy = target_entropy
         self.target_update_interval = target_update_interval
@@ -207,6 +212,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         if self.env is not None:
             self._setup_replay_buffer()
         self._setup_entropy_coef()
+        self._setup_update_path()
 
     def update_hooks(self) -> list[UpdateHook]:
         """The algorithm's extensions of the update (before the policy's): gradient surgery when set."""
@@ -266,23 +272,6 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
 
     # --------------------------------------------------------------------------------------------- training
-    def train(self, gradient_steps: int, batch_size: int = 128) -> None:
-        self.policy.set_training_mode(True)
-        optimizers = [self.actor.optimizer, self.critic.optimizer]
-        if self.ent_coef_optimizer is not None:
-            optimizers.append(self.ent_coef_optimizer)
-        self._update_learning_rate(optimizers)
-
-        stats: dict[str, list[th.Tensor]] = {}
-        for gradient_step in range(gradient_steps):
-            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
-            for key, value in self._sac_update(replay_data).items():
-                stats.setdefault(key, []).append(value)
-            if gradient_step % self.target_update_interval == 0:
-                polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-        self._n_updates += gradient_steps
-        self._record_train_stats({key: th.stack(values).mean(0).cpu().numpy() for key, values in stats.items()})
-
     def _sac_update(self, replay_data: MultiTaskReplayBufferSamples) -> dict[str, th.Tensor]:
         """One SAC update on a task-major batch: beta_i, then critics (Eq. 15-16), then actor (Eq. 9)."""
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
@@ -346,6 +335,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
         excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps", "update_hook"]
+        excluded += ["monitor", "_update_runner"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -356,6 +346,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
 
     def save(self, path, exclude=None, include=None) -> None:
         """Save the model; the global RNG states are saved with it so that a resumed run continues exactly."""
+        self.monitor.check()
         self.rng_state = capture_rng_state()
         try:
             super().save(path, exclude=exclude, include=include)
@@ -388,6 +379,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, PerTaskLogMixin, OffPolicyAlgorithm
         progress_bar: bool = False,
     ) -> SelfMTSAC:
         super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
+        self.monitor.check()
         if self.num_timesteps <= self.learning_starts:  # SB3 updates once num_timesteps > learning_starts
             warnings.warn(
                 f"learn ended at {self.num_timesteps} env steps, not past learning_starts={self.learning_starts}: "

@@ -15,7 +15,7 @@ from sb3_mtte.common.gradient_surgery import (
 )
 from sb3_mtte.common.policies import MultiTaskActor
 from sb3_mtte.common.update_hooks import UpdateHook
-from sb3_mtte.common.utils import check_finite
+from sb3_mtte.common.update_monitor import UpdateMonitor
 
 
 class TaskStepMixin:
@@ -30,6 +30,7 @@ class TaskStepMixin:
     """
 
     update_hook: UpdateHook
+    monitor: UpdateMonitor
     actor: MultiTaskActor
     critic: nn.Module
 
@@ -74,13 +75,13 @@ class TaskStepMixin:
             return self._combined_step(optimizer, name, task_losses, task_weights, module)
         return self._weighted_step(optimizer, name, task_losses, task_weights)
 
-    @staticmethod
     def _weighted_step(
-        optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
+        self, optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
     ) -> th.Tensor:
-        """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training."""
+        """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training (before the
+        step, or at the next read of :attr:`monitor` on the CUDA-graph path)."""
         loss = (task_weights * task_losses).sum()
-        check_finite(name, loss)
+        self.monitor.check_finite(name, loss)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -105,7 +106,7 @@ class TaskStepMixin:
         """
         kept = self._take_kept_rows(module)  # taken first: a non-finite loss leaves no graph behind
         loss = (task_weights * task_losses).sum()
-        check_finite(name, loss)
+        self.monitor.check_finite(name, loss)
         params = [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
         grads = self._per_task_gradients(module, kept, task_losses, params)
         direction = self.update_hook.combine_gradients(grads, task_weights)

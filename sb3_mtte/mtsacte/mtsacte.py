@@ -116,6 +116,7 @@ class MTSACTE(MTSAC):
         nt_chunk_size: int | str | None = "auto",
         nt_measure: str = "per_batch",
         critic_arch: str = "per_task",
+        update_path: str = "auto",
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -166,6 +167,7 @@ class MTSACTE(MTSAC):
             target_update_interval=target_update_interval,
             critic_arch="per_task",
             q_loss_clip=q_loss_clip,
+            update_path=update_path,
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
@@ -334,7 +336,10 @@ class MTSACTE(MTSAC):
         optimizer.step()
 
     def _set_selection(self, selection: TaskSelection) -> None:
+        weights = getattr(self, "task_weights", None)
         self.transfer_matrix, self.mu, self.selected_tasks, self.task_weights = selection
+        if isinstance(weights, th.Tensor) and weights.shape == self.task_weights.shape:
+            self.task_weights = weights.copy_(self.task_weights)  # in place: a captured update reads w there
 
     def _log_negative_transfer(self) -> None:
         """Record the ``nt/*`` and ``rep/*`` keys and queue the record of ``negative_transfer.jsonl``."""

@@ -1,0 +1,64 @@
+"""Where the replay buffer's transitions live when the model trains on a GPU.
+
+The buffer's numpy arrays stay the record that ``save_replay_buffer`` writes. With ``storage="device"`` a copy of
+them lives on the model's device (:class:`DeviceStorage`): each vector step writes its N transitions there, and a
+batch is gathered there from indices drawn on the host by the same numpy draw as on the CPU (N x L integers cross
+to the device, never the batch). With ``storage="pinned"`` (for a buffer the GPU cannot hold) the batch is gathered
+on the host into page-locked memory and copied to the device without waiting for it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch as th
+
+STORAGES = ("auto", "host", "pinned", "device")
+DEVICE_SHARE = 0.5
+"""``"auto"`` keeps the buffer on the GPU when it takes at most this share of the GPU's free memory."""
+
+
+def resolve_storage(storage: str, device: th.device, n_bytes: int) -> str:
+    """``"host"``, ``"pinned"`` or ``"device"`` for a buffer of ``n_bytes`` on ``device``.
+
+    :raises ValueError: for an unknown storage.
+    """
+    if storage not in STORAGES:
+        raise ValueError(f"storage must be one of {STORAGES}, got {storage!r}.")
+    if storage != "auto":
+        return storage
+    if device.type != "cuda":
+        return "host"
+    free, _ = th.cuda.mem_get_info(device)
+    return "device" if n_bytes <= DEVICE_SHARE * free else "pinned"
+
+
+def to_device(array: np.ndarray, device: th.device) -> th.Tensor:
+    """``array`` on ``device``; from page-locked memory without waiting when it is a GPU (PyTorch's host allocator
+    keeps the page-locked block until the copy is done)."""
+    tensor = th.from_numpy(np.ascontiguousarray(array))
+    if device.type != "cuda":
+        return tensor.to(device)
+    return tensor.pin_memory().to(device, non_blocking=True)
+
+
+class DeviceStorage:
+    """The buffer's ``(rows, N, ...)`` transition arrays mirrored on ``device``.
+
+    :param arrays: the buffer's arrays by field name (uploaded once: empty for a new buffer, full after a load).
+    :param device: the model's device.
+    """
+
+    def __init__(self, arrays: dict[str, np.ndarray], device: th.device) -> None:
+        self.device = device
+        self.tensors = {name: to_device(array, device) for name, array in arrays.items()}
+        self.columns = th.arange(next(iter(arrays.values())).shape[1], device=device)[:, None]
+
+    def write(self, row: int, arrays: dict[str, np.ndarray]) -> None:
+        """Copy row ``row`` of every array to the device."""
+        for name, array in arrays.items():
+            self.tensors[name][row].copy_(to_device(array[row], self.device), non_blocking=True)
+
+    def gather(self, rows: np.ndarray) -> dict[str, th.Tensor]:
+        """``(N, L, ...)`` tensors: row ``rows[i, j]`` of task i's column, for every array."""
+        index = to_device(rows, self.device)
+        return {name: tensor[index, self.columns] for name, tensor in self.tensors.items()}

@@ -1,0 +1,141 @@
+"""The update's two paths (:mod:`sb3_mtte.mtsac.update_path`): the CUDA-graph path runs the eager update's code on
+static inputs, with tensor learning rates and the host's reads deferred to the logger's dump. On the CPU it runs
+without the graph (everything else of the path) and gives the eager path's parameters bit for bit; on CUDA, with
+the graph, within float tolerance."""
+
+from __future__ import annotations
+
+import csv
+
+import numpy as np
+import pytest
+import torch as th
+from variant_statistics import CAPTURABLE_CASES, CASES, HOST_READING, VECTOR_STEPS, build_case
+
+from sb3_mtte import MTSAC, make_mt_env
+
+CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+
+
+def graph_path_without_graph(model):
+    model._setup_update_path(use_graph=False)
+    return model
+
+
+def trained(model, steps: int = 4 * VECTOR_STEPS, **learn_kwargs):
+    model.learn(steps, **learn_kwargs)
+    return model
+
+
+def state(model) -> dict[str, th.Tensor]:
+    tensors = dict(model.policy.state_dict())
+    tensors["ent_coef"] = model.entropy_coefficients
+    if hasattr(model, "task_weights"):
+        tensors["task_weights"] = model.task_weights
+    return {key: value.detach().cpu().clone() for key, value in tensors.items()}
+
+
+@pytest.mark.parametrize("case", list(CAPTURABLE_CASES))
+def test_the_graph_path_gives_the_eager_parameters_on_the_cpu(case):
+    eager = trained(build_case(case))
+    assert eager.resolved_update_path() == "eager"
+    other = trained(graph_path_without_graph(build_case(case)))
+    assert other.monitor.deferred and other._update_runner.calls == other._update_runner.WARMUP
+    assert other._update_runner.static_batch is not None, "the updates after the warm-up ran on the static inputs"
+    expected, got = state(eager), state(other)
+    assert all(th.equal(got[key], expected[key]) for key in expected)
+
+
+def test_a_learning_rate_schedule_reaches_the_tensor_learning_rates():
+    def schedule(progress_remaining: float) -> float:
+        return 1e-3 * progress_remaining
+
+    eager = trained(build_case("mt", learning_rate=schedule))
+    other = trained(graph_path_without_graph(build_case("mt", learning_rate=schedule)))
+    lr = other.actor.optimizer.param_groups[0]["lr"]
+    assert isinstance(lr, th.Tensor) and float(lr) == eager.actor.optimizer.param_groups[0]["lr"] < 1e-3
+    expected, got = state(eager), state(other)
+    assert all(th.equal(got[key], expected[key]) for key in expected)
+
+
+def progress_rows(folder) -> list[dict[str, str]]:
+    with open(folder / "progress.csv", newline="") as file:
+        return [{k: v for k, v in row.items() if not k.startswith("time/")} for row in csv.DictReader(file)]
+
+
+@pytest.mark.parametrize("case", ["clip", "mtsacte"])
+def test_deferred_reads_log_what_the_eager_path_logs(tmp_path, case):
+    from stable_baselines3.common.logger import configure
+
+    folders = []
+    for name in ("eager", "graph"):  # each built right before it trains: the seed sets the global RNGs
+        model = build_case(case) if name == "eager" else graph_path_without_graph(build_case(case))
+        model.set_logger(configure(str(tmp_path / name), ["csv"]))
+        trained(model, log_interval=1)
+        folders.append(tmp_path / name)
+    eager, graph = (progress_rows(folder) for folder in folders)
+    assert len(eager) >= 2 and [row.keys() for row in graph] == [row.keys() for row in eager]
+    for got, expected in zip(graph, eager, strict=True):  # means over updates: summed in another order
+        assert {k: float(v or "nan") for k, v in got.items()} == pytest.approx(
+            {k: float(v or "nan") for k, v in expected.items()}, rel=1e-6, nan_ok=True
+        )
+    assert any(row.get("train/critic_loss") for row in eager)
+
+
+def nan_rewards_model():
+    model = graph_path_without_graph(build_case("mt"))
+    model.learn(2 * VECTOR_STEPS)
+    model.replay_buffer.rewards[:] = np.nan
+    return model
+
+
+def test_a_non_finite_loss_stops_training_at_the_next_read_naming_the_update_and_the_env_step(tmp_path):
+    model = nan_rewards_model()
+    updates_before = model._n_updates
+    model.train(2, 16)  # deferred: no read of the device
+    with pytest.raises(
+        FloatingPointError,
+        match=rf"critic loss is not finite \(first at update {updates_before + 1}, env step {model.num_timesteps}\)",
+    ):
+        model.monitor.check()
+    with pytest.raises(FloatingPointError, match="critic loss is not finite"):
+        model.save(tmp_path / "model")  # no checkpoint of a broken model
+    model = nan_rewards_model()
+    with pytest.raises(FloatingPointError, match="critic loss is not finite"):
+        model.learn(40, log_interval=1, reset_num_timesteps=False)
+
+
+def test_auto_takes_the_graph_on_cuda_unless_the_update_reads_the_host(monkeypatch):
+    for case in CASES:
+        model = build_case(case)
+        monkeypatch.setattr(model, "device", th.device("cuda"))
+        expected = "eager" if case in HOST_READING else "cuda_graph"
+        assert model.resolved_update_path() == expected, case
+        if case in HOST_READING:
+            model.update_path = "cuda_graph"
+            with pytest.raises(ValueError, match="reads the GPU on the host every step"):
+                model.resolved_update_path()
+
+
+def test_bad_update_paths_are_refused():
+    with pytest.raises(ValueError, match="update_path must be one of"):
+        MTSAC("MlpPolicy", make_mt_env("toy-conflict", seed=0), update_path="graph", device="cpu")
+    with pytest.raises(ValueError, match="needs a CUDA device"):
+        MTSAC("MlpPolicy", make_mt_env("toy-conflict", seed=0), update_path="cuda_graph", device="cpu")
+
+
+def relative_distance(a: dict[str, th.Tensor], b: dict[str, th.Tensor], initial: dict[str, th.Tensor]) -> float:
+    error = sum(float((a[k].double() - b[k].double()).pow(2).sum()) for k in initial)
+    moved = sum(float((a[k].double() - initial[k].double()).pow(2).sum()) for k in initial)
+    return (error / moved) ** 0.5
+
+
+@CUDA
+@pytest.mark.parametrize("case", list(CAPTURABLE_CASES))
+def test_the_cuda_graph_gives_the_eager_parameters_on_cuda(case):
+    eager_model = build_case(case, device="cuda", update_path="eager")
+    initial = {k: v.detach().cpu().clone() for k, v in eager_model.policy.state_dict().items()}
+    eager = state(trained(eager_model))
+    graph_model = trained(build_case(case, device="cuda"))
+    assert graph_model.resolved_update_path() == "cuda_graph" and graph_model._update_runner.graphs
+    assert relative_distance(state(graph_model), eager, initial) < (1e-2 if case == "softmod" else 1e-3)
