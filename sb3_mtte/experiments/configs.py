@@ -117,9 +117,24 @@ def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-co
 def hyperparameter_keys(algo: str) -> list[str]:
     """Every key a hyperparameter entry of the zoo key ``algo`` may hold: the arguments of its class (but those
     set from rl-zoo's flags), rl-zoo's own keys and the launcher's."""
-    parameters = inspect.signature(algo_classes()[algo].__init__).parameters
-    arguments = [name for name in parameters if name not in ("self", "_init_setup_model", *FLAG_KEYS)]
+    arguments = [
+        name for name in _init_arguments(algo_classes()[algo]) if name not in ("_init_setup_model", *FLAG_KEYS)
+    ]
     return [*arguments, *ZOO_YAML_KEYS, *LAUNCHER_YAML_KEYS]
+
+
+def _init_arguments(cls: type) -> list[str]:
+    """Named arguments of ``cls.__init__``, and of its bases' while each passes on ``**kwargs``."""
+    names: list[str] = []
+    for klass in cls.__mro__:
+        if "__init__" not in klass.__dict__:
+            continue
+        parameters = list(inspect.signature(klass.__init__).parameters.values())[1:]
+        named = (p.name for p in parameters if p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD))
+        names += [name for name in named if name not in names]
+        if not any(p.kind is p.VAR_KEYWORD for p in parameters):
+            break
+    return names
 
 
 def unknown_key_message(algo: str, keys: Iterable[str], source: Callable[[str], str]) -> str | None:

@@ -1,0 +1,119 @@
+"""The eager path against the fast path (a CUDA graph of the update, the replay buffer on the device, one process
+per task), measured in one run; prints one JSON object (``docs/results/gpu_check.json`` on a GPU).
+
+- ``updates``: updates/s of every variant at each N on synthetic Meta-World-shaped batches (2 x 400 nets, L = 128
+  per task), eager and fast timed round-robin;
+- ``end_to_end``: env steps/s of ``learn()`` on MT10 and MT50 for MTSAC and MTSACTE after learning starts, eager
+  (``update_path="eager"``, host buffer, tasks stepped one after another) and fast (the defaults on the device,
+  ``SubprocVecEnv`` when the machine has a core per task), and the hours the paper's budget then takes.
+
+    python benchmarks/bench_gpu.py --n-tasks 10 20 50 --benchmarks MT10 MT50 --vector-steps 300
+    python benchmarks/bench_gpu.py --n-tasks 10 --benchmarks MT10 --vector-steps 20 --repeats 3  # a dry run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+
+import torch as th
+from bench_updates import VARIANTS, fill_buffer, interleaved_medians, quiet, synthetic_env
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
+
+from sb3_mtte import MTSAC, MTSACTE, __version__, make_mt_env
+
+PAPER_ENV_STEPS = {"MT10": 50_000_000, "MT50": 100_000_000}
+"""The paper's MT10 budget (5M env steps per task) and MT50 at 2M per task."""
+PATHS = {"eager": {"update_path": "eager", "replay_buffer_kwargs": {"storage": "host"}}, "fast": {}}
+
+
+def update_models(n_tasks: int, device: str) -> dict[str, object]:
+    """Every MTSAC variant and MTSACTE's every-step update on each path, with a filled buffer."""
+    rows, models = 512, {}
+    variants = {**{label: (MTSAC, policy, kwargs) for label, (policy, kwargs) in VARIANTS.items()}}
+    variants["MTSACTE-update"] = (MTSACTE, "MlpPolicy", {})
+    for label, (cls, policy, kwargs) in variants.items():
+        for path, path_kwargs in PATHS.items():
+            model = cls(policy, synthetic_env(n_tasks), buffer_size=rows * n_tasks, device=device, seed=0,
+                        **kwargs, **path_kwargs)  # fmt: skip
+            fill_buffer(quiet(model), rows)
+            if cls is MTSACTE:
+                model._last_iteration = model._iteration_of_step(0)  # the every-step update alone: no recomputation
+            models[f"{label}|{path}"] = model
+    return models
+
+
+def bench_updates(n_tasks: int, device: str, repeats: int) -> dict:
+    models = update_models(n_tasks, device)
+    seconds = interleaved_medians({k: (lambda m=m: m.train(1, 128)) for k, m in models.items()}, repeats, warmup=5)
+    labels = sorted({key.split("|")[0] for key in seconds})
+    return {
+        "n_tasks": n_tasks,
+        "path": {label: models[f"{label}|fast"].resolved_update_path() for label in labels},
+        "updates_per_s": {label: {p: round(1 / seconds[f"{label}|{p}"], 1) for p in PATHS} for label in labels},
+        "speedup": {label: round(seconds[f"{label}|eager"] / seconds[f"{label}|fast"], 2) for label in labels},
+    }
+
+
+def env_for(benchmark: str, path: str):
+    subprocesses = path == "fast" and (os.cpu_count() or 1) > int(benchmark[2:])
+    cls = SubprocVecEnv if subprocesses else DummyVecEnv
+    return make_mt_env(benchmark, seed=0, vec_env_cls=cls), cls.__name__
+
+
+def bench_end_to_end(benchmark: str, device: str, vector_steps: int) -> dict:
+    """Env steps/s of learn() after learning starts (its random warm-up untimed), per algorithm and path."""
+    rates, vec_envs = {}, {}
+    for path, path_kwargs in PATHS.items():
+        env, vec_envs[path] = env_for(benchmark, path)
+        n_tasks = env.num_envs
+        for label, cls in (("MTSAC", MTSAC), ("MTSACTE", MTSACTE)):
+            model = quiet(cls("MlpPolicy", env, learning_starts=256 * n_tasks, buffer_size=2000 * n_tasks,
+                              device=device, seed=0, **path_kwargs))  # fmt: skip
+            model.learn(256 * n_tasks + 10 * n_tasks)  # random warm-up, the first updates, MTSACTE's recomputation
+            if device == "cuda":
+                th.cuda.synchronize()
+            start = time.perf_counter()
+            model.learn(vector_steps * n_tasks, reset_num_timesteps=False)
+            if device == "cuda":
+                th.cuda.synchronize()
+            rates.setdefault(label, {})[path] = round(vector_steps * n_tasks / (time.perf_counter() - start), 1)
+        env.close()
+    hours = {label: {p: round(PAPER_ENV_STEPS[benchmark] / r / 3600, 1) for p, r in by_path.items()}
+             for label, by_path in rates.items()}  # fmt: skip
+    return {"env_steps_per_s": rates, "paper_budget_hours": hours, "vec_env": vec_envs}
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n-tasks", type=int, nargs="+", default=[10, 20, 50], help="task counts of the updates")
+    parser.add_argument("--benchmarks", nargs="+", default=["MT10", "MT50"], choices=sorted(PAPER_ENV_STEPS))
+    parser.add_argument("--vector-steps", type=int, default=300, help="timed vector steps of each learn()")
+    parser.add_argument("--repeats", type=int, default=11, help="timed rounds of the updates")
+    parser.add_argument("--device", default="auto", help="cuda, cpu or auto (default)")
+    args = parser.parse_args(argv)
+    device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
+    report: dict = {
+        "device": device,
+        "device_name": th.cuda.get_device_name(0) if device == "cuda" else platform.processor() or "cpu",
+        "torch": th.__version__,
+        "sb3_mtte": __version__,
+        "cpu_count": os.cpu_count(),
+        "updates": [bench_updates(n, device, args.repeats) for n in args.n_tasks],
+    }
+    if 10 in args.n_tasks:
+        report["update_speedup_n10"] = next(u for u in report["updates"] if u["n_tasks"] == 10)["speedup"]["MTSAC-MT"]
+    for benchmark in args.benchmarks:
+        result = bench_end_to_end(benchmark, device, args.vector_steps)
+        report[f"end_to_end_{benchmark}"] = result
+        for label, by_path in result["env_steps_per_s"].items():
+            report.setdefault(label, {})[f"{benchmark.lower()}_env_steps_per_s"] = by_path
+    print(json.dumps(report, indent=1))
+    return report
+
+
+if __name__ == "__main__":
+    main()
