@@ -468,3 +468,35 @@ def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeyp
     with open(report) as file:
         (trial,) = csv.DictReader(file)
     assert calls == [1] and float(trial["value"]) == 0.625
+
+
+def test_meta_world_steps_one_process_per_task_where_the_machine_has_the_cores():
+    from sb3_mtte.experiments.env_ids import default_vec_env
+
+    assert default_vec_env("MT10", cpu_count=16) == default_vec_env("MT10-cpu", cpu_count=11) == "subproc"
+    assert default_vec_env("MT10", cpu_count=10) == default_vec_env("MT50", cpu_count=16) == "dummy"
+    assert default_vec_env("toy-conflict", cpu_count=64) == "dummy"
+
+
+def test_a_run_stepped_in_subprocesses_resumes_to_the_numbers_of_one_stepped_in_one_process(tmp_path):
+    """SubprocVecEnv (killed after its checkpoint at 200 steps and resumed) ends where DummyVecEnv ends, bit for bit."""
+    args = ["--save-freq", "200", "--save-replay-buffer", "-params", "learning_starts:100"]
+    dummy = tiny_train(tmp_path / "a", "mtsac_mt", "--vec-env", "dummy", *args, steps=400)
+    killer = f"{RaiseAt.__module__}.RaiseAt"
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        tiny_train(
+            tmp_path / "b",
+            "mtsac_mt",
+            "--vec-env",
+            "subproc",
+            *args,
+            f"callback:{{'{killer}': dict(timesteps=300)}}",
+            steps=400,
+        )
+    resume = ["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *TINY[:3]]
+    main([*resume, "-params", "callback:None"])
+    run = tmp_path / "b" / "mtsac_mt" / f"{ENV}_1"
+    assert "subproc" in (run / ENV / "args.yml").read_text()  # the resumed run kept its processes
+    a, b = load_model(dummy / f"{ENV}.zip"), load_model(run / f"{ENV}.zip")
+    assert a.num_timesteps == b.num_timesteps == 400 and read_run_info(run)["resumes"]
+    assert all(th.equal(value, b.policy.state_dict()[key]) for key, value in a.policy.state_dict().items())

@@ -11,6 +11,7 @@ task to build.
 from __future__ import annotations
 
 import contextvars
+import os
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -144,6 +145,16 @@ class _TaskEnvFn:
             return self.env_fn()
         finally:
             _TASK_CONTEXT.reset(token)
+
+
+def default_vec_env(env_id: str, cpu_count: int | None = None) -> str:
+    """rl-zoo's ``--vec-env`` when none is given: ``"subproc"`` (one process per task, stepped in parallel) for a
+    Meta-World benchmark on a machine with a core per task and one for the learner, else ``"dummy"`` (a toy's steps
+    cost less than a message to a process)."""
+    cores = os.cpu_count() if cpu_count is None else cpu_count
+    if parse_toy_name(split_env_id(env_id)[0]) is not None:
+        return "dummy"
+    return "subproc" if (cores or 1) > env_id_n_tasks(env_id) else "dummy"
 
 
 class MultiTaskVecEnvFactory:

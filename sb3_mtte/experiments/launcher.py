@@ -25,7 +25,7 @@ from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
-from sb3_mtte.experiments.env_ids import benchmark_help, register_env_id
+from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
 from sb3_mtte.experiments.zoo_parsers import TRAIN_DESCRIPTION, add_launcher_options, zoo_parser
@@ -192,6 +192,8 @@ def train(argv: Sequence[str]) -> None:
     check_conf_file(zoo_argv)
     register_algos()
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
+    if ours.resume is None and not has_flag(zoo_argv, "--vec-env"):  # a resumed run keeps its own (args.yml)
+        zoo_argv += ["--vec-env", default_vec_env(env_id)]
     if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")
     launch = _launch_options(ours, zoo_argv, algo, env_id, saved)
