@@ -332,6 +332,22 @@ def test_bad_input_raises_a_clear_error(policy, kwargs, match):
             small_model(policy, **kwargs)
 
 
+def test_table1_of_mt10_100k_shows_the_anchor_at_its_budget_beside_sac_mt():
+    """MT10-100k's Table 1 gives, in a column of its own and its caption, the published success at 100k env steps
+    per task (McLean et al. 2025) beside SAC-MT, and '-' beside the algorithms it has no number of."""
+    estimate = Estimate(0.5, 0.4, 0.6)
+    scores = {label: np.full((3, 10), 0.5) for label in ("SAC-MT", "Ours")}
+    aggregates = {label: {"mean": estimate, "iqm": estimate} for label in scores}
+    text = table1("MT10-100k", BenchmarkStatistics(scores, aggregates, None, {}), reps=5)
+    assert "Published (%) | At this budget (%) |" in text and "At this budget: McLean et al. 2025" in text
+    assert (
+        f"| SAC-MT | 3 | 50.0 [40.0, 60.0] | 50.0 [40.0, 60.0] | {paper_table1()['SAC-MT']['MT10']:.1f} | 38-42 |"
+        in text
+    )
+    assert "| Ours | 3 | 50.0 [40.0, 60.0] | 50.0 [40.0, 60.0] |" in text and text.rstrip().endswith("| - |")
+    assert "At this budget" not in table1("MT10-cpu", BenchmarkStatistics(scores, aggregates, None, {}), reps=5)
+
+
 @pytest.mark.parametrize("env_name", ["MT10-cpu", "MT20-cpu"])
 def test_table1_shows_every_published_number_and_source_of_the_registry(env_name):
     """Table 1 of a benchmark lists, beside each algorithm with runs, its published number on that benchmark family

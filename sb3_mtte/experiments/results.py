@@ -90,6 +90,16 @@ def _cell(estimate: Estimate | None, scale: float = 100.0, digits: int = 1) -> s
     return f"{value} [{low}, {high}]"
 
 
+SAME_BUDGET_ANCHORS: dict[str, tuple[str, dict[str, str]]] = {
+    "MT10-100k": (
+        "McLean et al. 2025 (Multi-Task RL Enables Parameter Scaling), Meta-World MT10, multi-task SAC 400 wide, "
+        "success after 100k env steps per task as read off their curves",
+        {"SAC-MT": "38-42"},
+    ),
+}
+"""Benchmark (env id) -> (source, label -> published success (%) at the benchmark's own budget)."""
+
+
 def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, float], reps: int, seed: int) -> str:
     note = (
         f"{bench}: final success over runs x tasks. n: seeds; [low, high]: 95% stratified-bootstrap confidence "
@@ -107,6 +117,8 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
                 by_source.setdefault(source, []).append(label)
         sources = "".join(f" {' and '.join(labels)}: {source}." for source, labels in by_source.items())
         note += " Published: the paper's Table 1 (Meta-World v2, 5 seeds)" + (f", except{sources}" if sources else ".")
+    if bench in SAME_BUDGET_ANCHORS:
+        note += f" At this budget: {SAME_BUDGET_ANCHORS[bench][0]}."
     return note
 
 
@@ -120,6 +132,8 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
     headers = ["Algorithm", "n", "Mean success (%)", "IQM (%)"]
     headers += [f"P({stats.ours} > X)"] if stats.improvement else []
     headers += ["Published (%)"] if published else []
+    anchors = SAME_BUDGET_ANCHORS.get(bench, ("", {}))[1]
+    headers += ["At this budget (%)"] if anchors else []
     lines = ["| " + " | ".join(headers) + " |", "|:--|" + "--:|" * (len(headers) - 1)]
     for label, matrix in stats.scores.items():
         cells = [label, str(len(matrix)), _cell(stats.aggregates[label]["mean"]), _cell(stats.aggregates[label]["iqm"])]
@@ -127,6 +141,8 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
             cells.append(_cell(stats.improvement.get(label), scale=1.0, digits=2))
         if published:
             cells.append(f"{published[label]:.1f}" if label in published else "-")
+        if anchors:
+            cells.append(anchors.get(label, "-"))
         lines.append("| " + " | ".join(cells) + " |")
     return _table_note(bench, stats, published, reps, seed) + "\n\n" + "\n".join(lines) + "\n"
 
