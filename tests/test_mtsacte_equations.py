@@ -708,25 +708,6 @@ def test_mean_gain_of_the_embedding(toy_env):
         MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={"z_mean_init_gain": 0.0}))
 
 
-def test_the_mean_gain_defaults_to_the_meta_world_setting_on_meta_world_tasks_only(toy_env):
-    """Without z_mean_init_gain in policy_kwargs: 50 (chosen on DEV6) when every task is a Meta-World task, else 1
-    (chosen on toy-conflict); a given one wins, and the user's dict is left as it was."""
-    from sb3_mtte.mtsacte.policies import default_z_mean_init_gain
-
-    assert default_z_mean_init_gain(["reach-v3", "push-v3"]) == 50.0
-    assert default_z_mean_init_gain(["reach-v3", "agree-0"]) == default_z_mean_init_gain([]) == 1.0
-    kwargs = {"net_arch": [16, 16]}
-    assert MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs=kwargs)).policy.z_mean_init_gain == 1.0
-    env = make_mt_env("reach-v3_push-v3", seed=0)
-    try:
-        model = MTSACTE("MlpPolicy", env, **small_model_kwargs(policy_kwargs=kwargs))
-        assert model.policy.z_mean_init_gain == 50.0 and kwargs == {"net_arch": [16, 16]}
-        given = MTSACTE("MlpPolicy", env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 2.0}))
-        assert given.policy.z_mean_init_gain == 2.0
-    finally:
-        env.close()
-
-
 def test_deterministic_predict_with_a_sampled_z(toy_env):
     """deterministic_z="sample": deterministic predict feeds the actor a sample of E_phi (as in training) and takes
     the mean action: over many copies of one observation the actions vary, and their z has E_phi's std."""

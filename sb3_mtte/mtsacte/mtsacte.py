@@ -17,7 +17,7 @@ from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
 from sb3_mtte.mtsacte.callbacks import NegativeTransferLogCallback
 from sb3_mtte.mtsacte.objectives import TaskSelection, select_tasks
-from sb3_mtte.mtsacte.policies import MTSACTEPolicy, default_z_mean_init_gain
+from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.probe import task_probe_accuracy
 from sb3_mtte.mtsacte.transfer import (
     ESTIMATORS,
@@ -200,9 +200,6 @@ class MTSACTE(MTSAC):
             self._setup_model()
 
     def _setup_model(self) -> None:
-        if "z_mean_init_gain" not in self.policy_kwargs:
-            gain = default_z_mean_init_gain(self.task_names)
-            self.policy_kwargs = {**self.policy_kwargs, "z_mean_init_gain": gain}
         super()._setup_model()
         if getattr(self, "mu", None) is None:
             n, dtype = self.n_tasks, self._actor_dtype()

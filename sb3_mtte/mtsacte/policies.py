@@ -14,7 +14,6 @@ from torch import nn
 from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
-from sb3_mtte.envs.metaworld_envs import MT50_TASKS
 
 DETERMINISTIC_Z = ("mean", "sample")
 
@@ -50,17 +49,6 @@ class EmbeddingActor(MultiTaskActor):
         net_params = {name.removeprefix("net."): value for name, value in params.items()}
         dist = self.net.forward_stacked(net_params, obs.reshape(1, -1, obs.shape[-1]))
         return squashed_gaussian(dist.view(dist.shape[0], *obs.shape[:-1], -1), noise)
-
-
-METAWORLD_Z_MEAN_INIT_GAIN = 50.0
-"""E_phi's mean-head factor on Meta-World (chosen on DEV6 with 2 x 400 nets: docs/embedding_study.md)."""
-
-
-def default_z_mean_init_gain(task_names: list[str]) -> float:
-    """``z_mean_init_gain`` when ``policy_kwargs`` gives none: :data:`METAWORLD_Z_MEAN_INIT_GAIN` when every task is
-    a Meta-World task, else 1 (PyTorch's scale, chosen on toy-conflict)."""
-    metaworld = bool(task_names) and all(name in MT50_TASKS for name in task_names)
-    return METAWORLD_Z_MEAN_INIT_GAIN if metaworld else 1.0
 
 
 class MTSACTEPolicy(MultiTaskPolicy):
