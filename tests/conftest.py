@@ -40,7 +40,8 @@ def make_te_policy(
     """A small MTSACTE policy (encoder, decoder, actor, per-task twin critics), float64 by default.
 
     The critics' output layer is scaled by ``critic_scale`` so that the Q-terms (independent per task) dominate
-    the entropy terms and the tasks' policy gradients conflict: mu is then neither all 0 nor all N.
+    the entropy terms and the tasks' policy gradients conflict: mu is then neither all 0 nor all N. E_phi's mean head
+    keeps PyTorch's scale (``z_mean_init_gain=1``), the setting the hand-checked cases were built on.
     """
     th.manual_seed(seed)
     obs_space = spaces.Box(-np.inf, np.inf, shape=(state_dim + n_tasks,), dtype=np.float32)
@@ -53,6 +54,7 @@ def make_te_policy(
         net_arch=net_arch or [16, 16],
         activation_fn=activation_fn,
         z_dim=z_dim,
+        z_mean_init_gain=1.0,
         optimizer_kwargs={},
     )
     with th.no_grad():

@@ -357,7 +357,8 @@ def test_update_representation_applies_the_equations(toy_env, monkeypatch, estim
     -J^rep applied to the encoder and decoder (Eq. 11-14, second order through the inner step)."""
     step, c_vae = 1e-2, 0.05
     kwargs = small_model_kwargs(rep_gradient_steps=1, c_vae=c_vae, nt_step_size=step, nt_estimator=estimator, seed=1)
-    kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], "z_init_std": None}  # z noisy: every sign unambiguous
+    # z noisy (every sign unambiguous), E_phi's mean at PyTorch's scale: the case's conflicts were built on it
+    kwargs["policy_kwargs"] = {**kwargs["policy_kwargs"], "z_init_std": None, "z_mean_init_gain": 1.0}
     model = MTSACTE("MlpPolicy", toy_env, **kwargs)
     model.learn(160)
     with th.no_grad():  # larger Q-values, so that the tasks' policy gradients conflict
@@ -694,7 +695,9 @@ def test_initial_std_of_the_embedding(toy_env):
 
 
 def test_mean_gain_of_the_embedding(toy_env):
-    """z_mean_init_gain multiplies E_phi's initial mean (every state and task) and leaves its log-std."""
+    """z_mean_init_gain multiplies E_phi's initial mean (every state and task) and leaves its log-std; 50 by default
+    (the README's one line gets the setting chosen on DEV6)."""
+    assert MTSACTE("MlpPolicy", toy_env, **small_model_kwargs()).policy.z_mean_init_gain == 50.0
     kwargs = {"net_arch": [16, 16], "z_dim": 3}
     plain = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 1.0}))
     scaled = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(policy_kwargs={**kwargs, "z_mean_init_gain": 7.0}))
