@@ -94,6 +94,9 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--vector-steps", type=int, default=300, help="timed vector steps of each learn()")
     parser.add_argument("--repeats", type=int, default=11, help="timed rounds of the updates")
     parser.add_argument("--device", default="auto", help="cuda, cpu or auto (default)")
+    parser.add_argument(
+        "--out", default=None, help="also write the JSON here, after every part (a later crash keeps it)"
+    )
     args = parser.parse_args(argv)
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
     report: dict = {
@@ -102,17 +105,27 @@ def main(argv: list[str] | None = None) -> dict:
         "torch": th.__version__,
         "sb3_mtte": __version__,
         "cpu_count": os.cpu_count(),
-        "updates": [bench_updates(n, device, args.repeats) for n in args.n_tasks],
+        "updates": [],
     }
-    if 10 in args.n_tasks:
-        report["update_speedup_n10"] = next(u for u in report["updates"] if u["n_tasks"] == 10)["speedup"]["MTSAC-MT"]
+    for n_tasks in args.n_tasks:
+        report["updates"].append(bench_updates(n_tasks, device, args.repeats))
+        if n_tasks == 10:
+            report["update_speedup_n10"] = report["updates"][-1]["speedup"]["MTSAC-MT"]
+        write(report, args.out)
     for benchmark in args.benchmarks:
         result = bench_end_to_end(benchmark, device, args.vector_steps)
         report[f"end_to_end_{benchmark}"] = result
         for label, by_path in result["env_steps_per_s"].items():
             report.setdefault(label, {})[f"{benchmark.lower()}_env_steps_per_s"] = by_path
+        write(report, args.out)
     print(json.dumps(report, indent=1))
     return report
+
+
+def write(report: dict, path: str | None) -> None:
+    if path is not None:
+        with open(path, "w") as file:
+            json.dump(report, file, indent=1)
 
 
 if __name__ == "__main__":

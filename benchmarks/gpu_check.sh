@@ -6,7 +6,8 @@
 # tests.log and gpu_check.json (the file docs/results/gpu_check.json is a copy of).
 #
 # The machine needs PyTorch with CUDA, and the package's other runtime dependencies; where it cannot download them,
-# carry them as wheels in .whl/ (found there and installed into /tmp/site first; 46 MB for Python 3.12):
+# carry them as wheels in .whl/ (ignored by git: name it among the paths to carry; installed into /tmp/site first;
+# 46 MB for Python 3.12). Nothing renders: MUJOCO_GL=disable, so no EGL library is needed.
 #   bash benchmarks/gpu_wheels.sh          # on a machine with the registry, into .whl/
 #   bash benchmarks/gpu_check.sh           # on the GPU machine, from the repository root
 # DRY_RUN=1 runs every step on the CPU at toy sizes (what CI's machine can check).
@@ -14,7 +15,8 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-gpu_check}"
 mkdir -p "$out"
-export MUJOCO_GL="${MUJOCO_GL:-egl}" PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+out="$(cd "$out" && pwd)"
+export MUJOCO_GL="${MUJOCO_GL:-disable}" PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if compgen -G ".whl/*.whl" > /dev/null; then
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
         || exit 1
@@ -22,14 +24,17 @@ if compgen -G ".whl/*.whl" > /dev/null; then
 fi
 if [ "${DRY_RUN:-0}" = 1 ]; then
     sizes=(--n-tasks 10 --benchmarks MT10 --vector-steps 20 --repeats 3 --device cpu)
+    tests=(-k "not cuda")
 else
+    tests=(-k cuda)
     nvidia-smi -L
     python3 -c "import torch as th; assert th.cuda.is_available(), 'no CUDA device'" || exit 1
     sizes=(--n-tasks 10 20 50 --benchmarks MT10 MT50 --vector-steps 300 --repeats 11 --device cuda)
 fi
-python3 -m pytest -q -rs -p no:cacheprovider tests/test_update_path.py tests/test_buffers.py tests/test_device.py \
-    2>&1 | tee "$out/tests.log" | tail -6
-(cd benchmarks && python3 bench_gpu.py "${sizes[@]}") > "$out/gpu_check.json" || exit 1
+python3 -m pytest -q -rs -p no:cacheprovider "${tests[@]}" tests/test_update_path.py tests/test_buffers.py \
+    tests/test_device.py 2>&1 | tee "$out/tests.log" | tail -6
+tests_status=${PIPESTATUS[0]}
+(cd benchmarks && python3 bench_gpu.py "${sizes[@]}" --out "$out/gpu_check.json") > /dev/null || exit 1
 python3 - "$out/gpu_check.json" <<'EOF'
 import json, sys
 report = json.load(open(sys.argv[1]))
@@ -39,3 +44,4 @@ for entry in report["updates"]:
 for label in ("MTSAC", "MTSACTE"):
     print(label, report[label])
 EOF
+exit "$tests_status"

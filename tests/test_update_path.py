@@ -13,6 +13,7 @@ import torch as th
 from variant_statistics import CAPTURABLE_CASES, CASES, HOST_READING, VECTOR_STEPS, build_case
 
 from sb3_mtte import MTSAC, make_mt_env
+from sb3_mtte.common.captured_update import learning_rate_tensors
 
 CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 
@@ -105,6 +106,19 @@ def test_a_non_finite_loss_stops_training_at_the_next_read_naming_the_update_and
         model.learn(40, log_interval=1, reset_num_timesteps=False)
 
 
+def test_a_checkpoint_of_the_graph_path_trains_on_the_cpu(tmp_path):
+    """A model saved with capturable optimizers (the graph path's, tensor learning rates) loads on the CPU with its
+    optimizers made plain again, and trains on."""
+    model = trained(graph_path_without_graph(build_case("mt")))
+    for optimizer in model._optimizers():
+        for group in optimizer.param_groups:
+            group["capturable"] = True
+    model.save(tmp_path / "model")
+    loaded = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cpu")
+    assert not any(g["capturable"] for o in loaded._optimizers() for g in o.param_groups)
+    loaded.learn(200, reset_num_timesteps=False)
+
+
 def test_auto_takes_the_graph_on_cuda_unless_the_update_reads_the_host(monkeypatch):
     for case in CASES:
         model = build_case(case)
@@ -131,11 +145,22 @@ def relative_distance(a: dict[str, th.Tensor], b: dict[str, th.Tensor], initial:
 
 
 @CUDA
-@pytest.mark.parametrize("case", list(CAPTURABLE_CASES))
-def test_the_cuda_graph_gives_the_eager_parameters_on_cuda(case):
-    eager_model = build_case(case, device="cuda", update_path="eager")
+@pytest.mark.parametrize(
+    "case, overrides",
+    [(case, {}) for case in CAPTURABLE_CASES]
+    + [
+        ("mt", {"target_update_interval": 2, "gradient_steps": 2})  # both graphs: with and without the Polyak step
+    ],
+)
+def test_the_cuda_graph_gives_the_eager_parameters_on_cuda(case, overrides):
+    """The eager reference runs its optimizers as the graph does (capturable, float32 learning rates): their bias
+    corrections then round alike, so that MTSACTE's sign counts cannot flip on rounding alone."""
+    eager_model = build_case(case, device="cuda", update_path="eager", **overrides)
+    for optimizer in eager_model._optimizers():
+        learning_rate_tensors(optimizer, capturable=True)
     initial = {k: v.detach().cpu().clone() for k, v in eager_model.policy.state_dict().items()}
     eager = state(trained(eager_model))
-    graph_model = trained(build_case(case, device="cuda"))
+    graph_model = trained(build_case(case, device="cuda", **overrides))
     assert graph_model.resolved_update_path() == "cuda_graph" and graph_model._update_runner.graphs
+    assert len(graph_model._update_runner.graphs) == (2 if overrides else 1)
     assert relative_distance(state(graph_model), eager, initial) < (1e-2 if case == "softmod" else 1e-3)

@@ -25,8 +25,7 @@ def learning_rate_tensors(optimizer: th.optim.Optimizer, capturable: bool) -> No
         if not isinstance(group["lr"], th.Tensor):  # CUDA's fused Adam reads a float32 learning rate
             dtype = th.float32 if device.type == "cuda" else th.float64
             group["lr"] = th.tensor(float(group["lr"]), dtype=dtype, device=device)
-        if capturable:
-            group["capturable"] = True
+        group["capturable"] = capturable
     if capturable:
         for param, state in optimizer.state.items():
             if isinstance(state.get("step"), th.Tensor):
@@ -56,14 +55,19 @@ class CapturedUpdate:
     :param optimizers: the optimizers the update steps (made capturable at capture).
     :param use_graph: False runs everything but the graph (static inputs, tensor learning rates): the CPU's view of
         this path, for tests.
+    :param device: the CUDA device of the update (its streams and graphs are made there).
     """
 
     WARMUP = 3
 
     def __init__(
-        self, update: UpdateFunction, optimizers: Callable[[], Sequence[th.optim.Optimizer]], use_graph: bool = True
+        self,
+        update: UpdateFunction,
+        optimizers: Callable[[], Sequence[th.optim.Optimizer]],
+        use_graph: bool = True,
+        device: th.device | None = None,
     ) -> None:
-        self.update, self.optimizers, self.use_graph = update, optimizers, use_graph
+        self.update, self.optimizers, self.use_graph, self.device = update, optimizers, use_graph, device
         self.calls = 0
         self.static_batch: NamedTuple | None = None
         self.graphs: dict[bool, th.cuda.CUDAGraph] = {}
@@ -72,9 +76,17 @@ class CapturedUpdate:
             learning_rate_tensors(optimizer, capturable=False)
 
     def __call__(self, batch: NamedTuple, polyak: bool) -> Stats:
+        if not self.use_graph:
+            return self._run(batch, polyak)
+        with th.cuda.device(self.device):
+            return self._run(batch, polyak)
+
+    def _run(self, batch: NamedTuple, polyak: bool) -> Stats:
         if self.calls < self.WARMUP:
             self.calls += 1
             return self._eager(batch, polyak)
+        if self.static_batch is not None and [f.shape for f in self.static_batch] != [f.shape for f in batch]:
+            self.static_batch, self.graphs, self.outputs = None, {}, {}  # another batch size: captured again
         if self.static_batch is None:
             self.static_batch = type(batch)(*(field.clone() for field in batch))
         else:

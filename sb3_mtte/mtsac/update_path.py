@@ -65,8 +65,13 @@ class UpdatePathMixin:
         self.monitor = UpdateMonitor(
             self.device, path != "eager", self._record_train_stats, mean_keys=("q_loss_clip_fraction",)
         )
-        eager = path == "eager"
-        self._update_runner = self._update if eager else CapturedUpdate(self._update, self._optimizers, use_graph)
+        if path == "eager":
+            for optimizer in self._optimizers():  # a checkpoint of the graph path keeps its optimizers' flag
+                for group in optimizer.param_groups:
+                    group["capturable"] = False
+            self._update_runner = self._update
+        else:
+            self._update_runner = CapturedUpdate(self._update, self._optimizers, use_graph, self.device)
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         optimizers = [self.actor.optimizer, self.critic.optimizer]
@@ -98,6 +103,11 @@ class UpdatePathMixin:
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
         self.monitor.count_update()
         return stats
+
+    def set_parameters(self, *args: Any, **kwargs: Any) -> None:
+        """SB3's, then a new runner: a loaded optimizer state replaces the tensors a captured graph would read."""
+        super().set_parameters(*args, **kwargs)  # type: ignore[misc]
+        self._setup_update_path()
 
     def dump_logs(self) -> None:
         """Read the monitor (a non-finite loss stops training here at the latest), then SB3's dump."""
