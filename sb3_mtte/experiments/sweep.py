@@ -219,9 +219,19 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
         argv, extra = argv[:cut], argv[cut + 1 :]
     parser = argparse.ArgumentParser(prog=command_prog("sweep", "sb3_mtte.sweep"), description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
-    parser.add_argument("--envs", nargs="+", required=True, help="benchmarks (MT10, MT20, toy-conflict, ...)")
+    parser.add_argument(
+        "--envs",
+        nargs="+",
+        required=True,
+        help="benchmarks (MT10, MT20, MT25, MT50, DEV6, toy-conflict, a task list such as reach-v3_push-v3)",
+    )
     parser.add_argument("--seeds", nargs="+", type=int, default=[0], help="seeds (default 0)")
-    parser.add_argument("--budget", choices=BUDGETS, default="full", help="hyperparameter entry: full, smoke or cpu")
+    parser.add_argument(
+        "--budget",
+        choices=BUDGETS,
+        default="full",
+        help="hyperparameter entry: full (the paper's budget) or an env id suffix: " + ", ".join(BUDGETS[1:]),
+    )
     parser.add_argument("--out", required=True, help="runs folder (the zoo's -f)")
     parser.add_argument("--address", default=None, help="Ray cluster address (default: start Ray locally)")
     parser.add_argument("--num-cpus", type=int, default=None, help="CPUs of the local Ray (default: all)")
