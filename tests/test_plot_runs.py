@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from sb3_mtte import plot
-from sb3_mtte.experiments import figures
+from sb3_mtte.experiments import figures, summary_figures
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 BUDGET = 800  # env steps, all tasks
@@ -92,7 +92,8 @@ def write_nt_log(run: Path, per_task_steps: list[int]) -> None:
 def kept_figures(monkeypatch) -> dict:
     """The figures plot draws from the logs, by file name (none written)."""
     kept: dict = {}
-    monkeypatch.setattr(figures, "save_figure", lambda fig, path, opts, written: kept.__setitem__(path.name, fig))
+    for module in (figures, summary_figures):
+        monkeypatch.setattr(module, "save_figure", lambda fig, path, opts, written: kept.__setitem__(path.name, fig))
     return kept
 
 
@@ -126,3 +127,15 @@ def test_times_past_a_single_recomputation_draw_no_heatmap(tmp_path, kept_figure
     assert [re.sub(r"t = [\d,]+ is", "t = T is", line) for line in err] == [
         "nt_matrix_toy-conflict_SAC-MT.png: t = T is past the log's last recomputation (t = 5,010): skipped"
     ] * 2
+
+
+def test_a_run_with_one_evaluation_is_drawn_as_a_dot(tmp_path, kept_figures):
+    """A curve of a single evaluation is a point, which a line alone leaves invisible: it gets a marker, and a
+    curve of several evaluations stays a plain line."""
+    for name, evaluations in (("one", [0.3]), ("four", [0.0, 0.1, 0.2, 0.3])):
+        write_run(tmp_path / name, 0, evaluations, None, finished=False)
+        plot.main([str(tmp_path / name), "--out", str(tmp_path / name), "--reps", "10", "--include-unfinished"])
+        for figure in ("success_toy-conflict.png", "per_task_toy-conflict.png"):
+            lines = [line for ax in kept_figures[figure].axes for line in ax.get_lines()]
+            assert lines and all(len(line.get_xdata()) == len(evaluations) for line in lines), figure
+            assert {line.get_marker() for line in lines} == {"o" if len(evaluations) == 1 else "None"}, figure

@@ -133,6 +133,11 @@ def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
     }
 
 
+def point_marker(x: Sequence[float] | np.ndarray) -> str | None:
+    """A dot for a series of one point, which a line alone would not show."""
+    return "o" if len(x) == 1 else None
+
+
 def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[int]:
     """Indices of the tasks named in ``wanted`` (full or short names, e.g. ``pick-place``); all when None."""
     if not wanted:
@@ -176,13 +181,13 @@ def _mean_series(
 def _twin_panel(ax: Axes, success: Series | None, other: Series | None, other_label: str) -> Axes:
     """Success (left axis, blue) and another quantity (right axis, orange) on one panel."""
     if success is not None and len(success[0]):
-        ax.plot(success[0], 100 * success[1], color="tab:blue", label="success")
+        ax.plot(success[0], 100 * success[1], color="tab:blue", marker=point_marker(success[0]), label="success")
     ax.set_ylim(-2, 102)
     ax.tick_params(axis="y", labelcolor="tab:blue", labelsize=7)
     ax.tick_params(axis="x", labelsize=7)
     twin = ax.twinx()
     if other is not None and len(other[0]):
-        twin.plot(other[0], other[1], color="tab:orange", label=other_label)
+        twin.plot(other[0], other[1], color="tab:orange", marker=point_marker(other[0]), label=other_label)
     twin.tick_params(axis="y", labelcolor="tab:orange", labelsize=7)
     return twin
 

@@ -22,6 +22,7 @@ from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments.figures import (
     PlotOptions,
     algorithm_styles,
+    point_marker,
     new_figure,
     panel_grid,
     safe_name,
@@ -75,7 +76,7 @@ def _band(
     ax: Axes, x: np.ndarray, mean: np.ndarray, low: np.ndarray, high: np.ndarray, label: str, style: tuple[str, str]
 ) -> None:
     color, linestyle = style
-    ax.plot(x, 100 * mean, label=label, color=color, linestyle=linestyle)
+    ax.plot(x, 100 * mean, label=label, color=color, linestyle=linestyle, marker=point_marker(x))
     if np.any(high > low):
         ax.fill_between(x, 100 * low, 100 * high, alpha=0.2, color=color)
 
