@@ -1,16 +1,16 @@
 #!/usr/bin/env bash
-# The device check of the fast path, in one run of under 8 minutes on one H100, with no download: the CUDA tests
+# The GPU check of the fast path, in one run of under 8 minutes on one H100 that downloads nothing: the CUDA tests
 # (the CUDA graph gives the eager parameters for every variant it holds, the device and pinned replay storages give
 # the host's batches), then benchmarks/bench_gpu.py (eager against fast: updates/s of every variant at N = 10, 20, 50;
 # MT10 and MT50 end to end for MTSAC and MTSACTE; the hours of the paper's budget). Writes ${OUT:-gpu_check}/:
 # tests.log and gpu_check.json (the file docs/results/gpu_check.json is a copy of).
 #
-# The machine needs PyTorch with CUDA, and the package's other runtime dependencies; where it cannot download them,
-# carry them as wheels in .whl/ (ignored by git: name it among the paths to carry; installed into /tmp/site first;
-# 46 MB for Python 3.12). Nothing renders: MUJOCO_GL=disable, so no EGL library is needed.
-#   bash benchmarks/gpu_wheels.sh          # on a machine with the registry, into .whl/
+# The machine needs PyTorch with CUDA and the package's other runtime dependencies. Wheels found in .whl/ (ignored by
+# git; 46 MB for Python 3.12) are installed into /tmp/site first, for a machine without a package registry.
+# Nothing renders: MUJOCO_GL=disable, so no EGL library is needed.
+#   bash benchmarks/gpu_wheels.sh          # with a package registry, into .whl/
 #   bash benchmarks/gpu_check.sh           # on the GPU machine, from the repository root
-# DRY_RUN=1 runs every step on the CPU at toy sizes (what CI's machine can check).
+# DRY_RUN=1 runs every step on the CPU at toy sizes (a machine without a GPU can check the script).
 set -uo pipefail
 cd "$(dirname "$0")/.."
 out="${OUT:-gpu_check}"

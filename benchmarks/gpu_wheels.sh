@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The wheels benchmarks/gpu_check.sh installs on a GPU machine that cannot download: the package's runtime
+# The wheels benchmarks/gpu_check.sh installs on a GPU machine without a package registry: the package's runtime
 # dependencies that a PyTorch image for Python 3.12 lacks (46 MB), into .whl/ (ignored by git).
 #   bash benchmarks/gpu_wheels.sh [PYTHON_VERSION]   # default 3.12
 set -euo pipefail

@@ -8,10 +8,14 @@ import warnings
 from pathlib import Path
 
 import gymnasium as gym
+import numpy as np
 import pytest
+from stable_baselines3.common.vec_env import DummyVecEnv
 from conftest import ENV, TINY, small_model_kwargs
 
 from sb3_mtte import MTSAC, MTSACTE
+from sb3_mtte.common.utils import check_multitask_env, check_one_hot
+from sb3_mtte.envs import OneHotTaskWrapper
 from sb3_mtte.zoo import main
 
 MTSAC_KWARGS = {"learning_starts": 100, "batch_size": 8, "buffer_size": 1_000, "policy_kwargs": {"net_arch": [16]}}
@@ -74,6 +78,22 @@ def test_a_plain_env_is_refused_naming_make_mt_env_and_the_one_hot_wrapper():
         MTSACTE("MlpPolicy", gym.make("Pendulum-v1"), **small_model_kwargs())
 
 
+def test_the_one_hot_wrapper_is_offered_only_where_one_task_is_enough():
+    """Wrapping one single-task env answers an env of one sub-env for MTSAC; it would not answer an env of several
+    sub-envs, nor MTSACTE, which needs two tasks."""
+    several = DummyVecEnv([lambda: OneHotTaskWrapper(gym.make("CartPole-v1"))] * 5)
+    for refuse, pattern in (
+        (lambda: check_multitask_env(several), "cannot hold a state"),
+        (lambda: check_one_hot(np.zeros((3, 5)), 3), "identity matrix"),
+        (lambda: check_multitask_env(DummyVecEnv([lambda: gym.make("Pendulum-v1")]), min_tasks=2), "at least 2"),
+    ):
+        with pytest.raises(ValueError, match=pattern) as refused:
+            refuse()
+        assert "make_mt_env" in str(refused.value) and "OneHotTaskWrapper" not in str(refused.value)
+    with pytest.raises(ValueError, match=r"identity matrix.*make_mt_env.*OneHotTaskWrapper"):
+        check_one_hot(np.zeros((1, 5)), 1)
+
+
 @pytest.mark.parametrize("name", sorted(ALGORITHMS))
 def test_a_gymnasium_vector_env_is_refused_naming_make_mt_env(toy_env, name):
     cls, kwargs = ALGORITHMS[name]
@@ -127,6 +147,19 @@ def test_train_takes_the_package_algorithms_only(tmp_path, flags, expected):
 def test_train_hyperparameter_mistakes_end_with_one_line(tmp_path, algo, params, expected):
     message = train_error(tmp_path, "-n", "40", "-params", params, algo=algo)
     assert re.search(expected, message), message
+
+
+def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, monkeypatch):
+    """Only the package's and rl-zoo's own refusals become one line; a ValueError raised elsewhere (a bug, not a
+    setting) reaches the user with its traceback."""
+    from sb3_mtte.experiments import manager
+
+    def broken_setup(self):
+        return np.zeros(2).reshape(3)
+
+    monkeypatch.setattr(manager.ExperimentManager, "setup_experiment", broken_setup)
+    with pytest.raises(ValueError, match="cannot reshape"):
+        main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-freq", "-1", *TINY])
 
 
 def test_train_names_the_nearest_key_of_a_misspelled_key_in_a_conf_file(tmp_path):

@@ -218,7 +218,7 @@ def test_a_tested_pytorch_release_takes_the_fused_node(monkeypatch, version):
     assert "ReLUMLP" in type(out.grad_fn).__name__
 
 
-def test_setup_cfg_requires_what_sb3_requires_and_ci_runs_a_tested_release():
+def test_setup_cfg_requires_what_sb3_requires_and_the_pinned_test_release_is_a_tested_one():
     """A user's PyTorch 2.8 to 2.x is kept (no downgrade); CI's torch==2.13.0 is a release the fused node takes."""
     root = Path(__file__).resolve().parents[1]
     config = configparser.ConfigParser(inline_comment_prefixes=("#",))

@@ -6,20 +6,23 @@ the graph, within float tolerance."""
 from __future__ import annotations
 
 import csv
+from collections import namedtuple
 
 import numpy as np
 import pytest
 import torch as th
+from stable_baselines3.common.logger import configure
 from variant_statistics import CAPTURABLE_CASES, CASES, HOST_READING, VECTOR_STEPS, build_case
 
 from sb3_mtte import MTSAC, make_mt_env
-from sb3_mtte.common.captured_update import learning_rate_tensors
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback
+from sb3_mtte.common.captured_update import CapturedUpdate, prepare_for_capture
 
 CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 
 
 def graph_path_without_graph(model):
-    model._setup_update_path(use_graph=False)
+    model._setup_update_path(capture=False)
     return model
 
 
@@ -41,7 +44,7 @@ def test_the_graph_path_gives_the_eager_parameters_on_the_cpu(case):
     eager = trained(build_case(case))
     assert eager.resolved_update_path() == "eager"
     other = trained(graph_path_without_graph(build_case(case)))
-    assert other.monitor.deferred and other._update_runner.calls == other._update_runner.WARMUP
+    assert other.update_monitor.deferred and other._update_runner.warmup_calls == other._update_runner.WARMUP
     assert other._update_runner.static_batch is not None, "the updates after the warm-up ran on the static inputs"
     expected, got = state(eager), state(other)
     assert all(th.equal(got[key], expected[key]) for key in expected)
@@ -64,15 +67,24 @@ def progress_rows(folder) -> list[dict[str, str]]:
         return [{k: v for k, v in row.items() if not k.startswith("time/")} for row in csv.DictReader(file)]
 
 
-@pytest.mark.parametrize("case", ["clip", "mtsacte"])
-def test_deferred_reads_log_what_the_eager_path_logs(tmp_path, case):
-    from stable_baselines3.common.logger import configure
+def dumps_of(dumper: str) -> dict:
+    """``learn``'s arguments that make the logger dump: SB3's ``log_interval``, or only an evaluation's dump."""
+    if dumper == "log_interval":
+        return {"log_interval": 1}
+    return {
+        "log_interval": 10**6,
+        "callback": MultiTaskEvalCallback("toy-conflict", eval_freq=50, episodes_per_task=1),
+    }
 
+
+@pytest.mark.parametrize(("case", "dumper"), [("clip", "log_interval"), ("mtsacte", "log_interval"), ("clip", "eval")])
+def test_deferred_reads_log_what_the_eager_path_logs(tmp_path, case, dumper):
+    """Every dump carries the same train statistics on both paths, the dumps an evaluation makes included."""
     folders = []
     for name in ("eager", "graph"):  # each built right before it trains: the seed sets the global RNGs
         model = build_case(case) if name == "eager" else graph_path_without_graph(build_case(case))
         model.set_logger(configure(str(tmp_path / name), ["csv"]))
-        trained(model, log_interval=1)
+        trained(model, **dumps_of(dumper))
         folders.append(tmp_path / name)
     eager, graph = (progress_rows(folder) for folder in folders)
     assert len(eager) >= 2 and [row.keys() for row in graph] == [row.keys() for row in eager]
@@ -80,7 +92,7 @@ def test_deferred_reads_log_what_the_eager_path_logs(tmp_path, case):
         assert {k: float(v or "nan") for k, v in got.items()} == pytest.approx(
             {k: float(v or "nan") for k, v in expected.items()}, rel=1e-6, nan_ok=True
         )
-    assert any(row.get("train/critic_loss") for row in eager)
+    assert sum(bool(row.get("train/critic_loss")) for row in eager) >= 2
 
 
 def nan_rewards_model():
@@ -98,12 +110,28 @@ def test_a_non_finite_loss_stops_training_at_the_next_read_naming_the_update_and
         FloatingPointError,
         match=rf"critic loss is not finite \(first at update {updates_before + 1}, env step {model.num_timesteps}\)",
     ):
-        model.monitor.check()
+        model.update_monitor.check()
     with pytest.raises(FloatingPointError, match="critic loss is not finite"):
         model.save(tmp_path / "model")  # no checkpoint of a broken model
     model = nan_rewards_model()
     with pytest.raises(FloatingPointError, match="critic loss is not finite"):
         model.learn(40, log_interval=1, reset_num_timesteps=False)
+
+
+def test_a_loaded_model_names_the_update_of_its_whole_run_and_a_new_runner_keeps_what_the_old_one_saw(tmp_path):
+    """The update named in the error counts from the run's start, not from the load; a non-finite loss marked
+    before the runner is rebuilt (``set_parameters``) is raised, not dropped."""
+    model = trained(build_case("mt"))
+    model.save(tmp_path / "model")
+    loaded = graph_path_without_graph(MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0)))
+    loaded.replay_buffer = model.replay_buffer
+    loaded.set_logger(configure(str(tmp_path / "log"), ["csv"]))
+    loaded.replay_buffer.rewards[:] = np.nan
+    loaded.train(1, 16)
+    with pytest.raises(FloatingPointError, match=rf"first at update {model._n_updates + 1},"):
+        loaded.update_monitor.check()
+    with pytest.raises(FloatingPointError, match="critic loss is not finite"):
+        loaded.set_parameters(loaded.get_parameters())
 
 
 def test_a_checkpoint_of_the_graph_path_trains_on_the_cpu(tmp_path):
@@ -117,6 +145,23 @@ def test_a_checkpoint_of_the_graph_path_trains_on_the_cpu(tmp_path):
     loaded = MTSAC.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cpu")
     assert not any(g["capturable"] for o in loaded._optimizers() for g in o.param_groups)
     loaded.learn(200, reset_num_timesteps=False)
+
+
+def test_a_new_batch_size_is_warmed_up_again_before_its_capture():
+    """The first WARMUP calls of each batch size run eagerly on the caller's batch, the later ones on the static
+    copy that the graph reads."""
+    on_static_inputs = []
+
+    def update(batch, polyak):
+        on_static_inputs.append(batch is runner.static_batch)
+        return {}
+
+    runner = CapturedUpdate(update, list, th.device("cpu"), capture=False)
+    batch = namedtuple("Batch", "observations")
+    for size in (4, 4, 4, 4, 4, 8, 8, 8, 8):
+        runner(batch(th.zeros(size)), True)
+    assert runner.WARMUP == 3
+    assert on_static_inputs == [False, False, False, True, True, False, False, False, True]
 
 
 def test_auto_takes_the_graph_on_cuda_unless_the_update_reads_the_host(monkeypatch):
@@ -157,7 +202,7 @@ def test_the_cuda_graph_gives_the_eager_parameters_on_cuda(case, overrides):
     corrections then round alike, so that MTSACTE's sign counts cannot flip on rounding alone."""
     eager_model = build_case(case, device="cuda", update_path="eager", **overrides)
     for optimizer in eager_model._optimizers():
-        learning_rate_tensors(optimizer, capturable=True)
+        prepare_for_capture(optimizer, capturable=True)
     initial = {k: v.detach().cpu().clone() for k, v in eager_model.policy.state_dict().items()}
     eager = state(trained(eager_model))
     graph_model = trained(build_case(case, device="cuda", **overrides))

@@ -28,7 +28,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
-from sb3_mtte.common.device_storage import DeviceStorage, resolve_storage, to_device
+from sb3_mtte.common.device_storage import DeviceStorage, check_storage, resolve_storage, to_device
 
 # Per-transition arrays of the main buffer that the top-K store copies, in this order.
 _FIELDS = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
@@ -145,7 +145,7 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         )
         self.top_k = top_k
         self.detect_episode_breaks = detect_episode_breaks
-        resolve_storage(storage, th.device("cpu"), 0)  # an unknown storage is refused here
+        check_storage(storage)
         self.storage = storage
         self._resolved_storage: str | None = None
         self._device_copy: DeviceStorage | None = None
@@ -269,12 +269,10 @@ class MultiTaskReplayBuffer(ReplayBuffer):
         """
         upper_bound = self.buffer_size if self.full else self.pos
         rows = np.random.randint(0, upper_bound, size=(self.n_envs, batch_size))
-        device_copy = self._on_device() if env is None else None
-        if device_copy is not None:
-            obs, next_obs, actions, rewards, dones, timeouts = device_copy.gather(rows).values()
-            return MultiTaskReplayBufferSamples(obs, actions, next_obs, dones * (1 - timeouts), rewards)
+        if env is None and (device_copy := self._on_device()) is not None:
+            return self._make_samples(device_copy.gather(rows), None)
         cols = np.arange(self.n_envs)[:, None]
-        return self._make_samples([getattr(self, name)[rows, cols] for name in _FIELDS], env)
+        return self._make_samples({name: getattr(self, name)[rows, cols] for name in _FIELDS}, env)
 
     def sample_top_k(self, batch_size: int, env: VecNormalize | None = None) -> MultiTaskReplayBufferSamples:
         """Task-major sample of ``batch_size`` transitions per task from the top-K store.
@@ -297,35 +295,40 @@ class MultiTaskReplayBuffer(ReplayBuffer):
             for part, name in zip(parts, _FIELDS, strict=True):
                 source = store.data[name] if n_stored[task] > 0 else getattr(self, name)[:, task]
                 part.append(source[rows[task]])
-        return self._make_samples([np.stack(part) for part in parts], env)
+        return self._make_samples({name: np.stack(part) for name, part in zip(_FIELDS, parts, strict=True)}, env)
 
-    def _make_samples(self, parts: list[np.ndarray], env: VecNormalize | None) -> MultiTaskReplayBufferSamples:
-        """Turn task-major ``(N, L, ...)`` arrays (in ``_FIELDS`` order, fresh copies) into a batch of tensors.
-
-        :param parts: observations, next observations, actions, rewards, dones, timeouts
-        :param env: VecNormalize env or None
-        :return: the batch
-        """
-        obs, next_obs, actions, rewards, dones, timeouts = parts
+    def _make_samples(self, fields: dict[str, Any], env: VecNormalize | None) -> MultiTaskReplayBufferSamples:
+        """Turn task-major ``(N, L, ...)`` fields (by :data:`_FIELDS` name; fresh numpy copies, or tensors gathered
+        on the device with ``env`` None) into a batch of tensors on the model's device."""
         data = (
-            self._normalize_obs(obs, env),
-            actions,
-            self._normalize_obs(next_obs, env),
-            dones * (1 - timeouts),
-            self._normalize_reward(rewards, env),
+            self._normalize_obs(fields["observations"], env),
+            fields["actions"],
+            self._normalize_obs(fields["next_observations"], env),
+            fields["dones"] * (1 - fields["timeouts"]),
+            self._normalize_reward(fields["rewards"], env),
         )
-        if self._on_device() is None and self._resolved_storage == "pinned":
-            return MultiTaskReplayBufferSamples(*(to_device(array, self.device) for array in data))
-        return MultiTaskReplayBufferSamples(*(self.to_torch(array, copy=False) for array in data))
+        return MultiTaskReplayBufferSamples(*(self._as_batch_tensor(value) for value in data))
+
+    def _as_batch_tensor(self, value: np.ndarray | th.Tensor) -> th.Tensor:
+        if isinstance(value, th.Tensor):
+            return value
+        if self._storage() == "pinned":
+            return to_device(value, th.device(self.device))
+        return self.to_torch(value, copy=False)
 
     # ------------------------------------------------------------------ storage
-    def _on_device(self) -> DeviceStorage | None:
-        """The copy of the transitions on the device when the storage resolves to ``"device"`` (made at first use,
-        also after a load, from the arrays), else None."""
+    def _storage(self) -> str:
+        """Where the transitions live: ``"host"``, ``"pinned"`` or ``"device"`` (:attr:`storage` resolved at first
+        use, once SB3 has set the buffer's device)."""
         if self._resolved_storage is None:
             n_bytes = sum(getattr(self, name).nbytes for name in _FIELDS)
             self._resolved_storage = resolve_storage(self.storage, th.device(self.device), n_bytes)
-        if self._resolved_storage == "device" and self._device_copy is None:
+        return self._resolved_storage
+
+    def _on_device(self) -> DeviceStorage | None:
+        """The copy of the transitions on the device for the ``"device"`` storage (made at first use, also after a
+        load, from the arrays), else None."""
+        if self._storage() == "device" and self._device_copy is None:
             self._device_copy = DeviceStorage({name: getattr(self, name) for name in _FIELDS}, th.device(self.device))
         return self._device_copy
 

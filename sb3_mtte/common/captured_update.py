@@ -13,17 +13,18 @@ from typing import Any, NamedTuple
 
 import torch as th
 
-Stats = dict[str, th.Tensor]
+from sb3_mtte.common.update_monitor import Stats
+
 UpdateFunction = Callable[[Any, bool], Stats]
 
 
-def learning_rate_tensors(optimizer: th.optim.Optimizer, capturable: bool) -> None:
+def prepare_for_capture(optimizer: th.optim.Optimizer, capturable: bool) -> None:
     """Hold every parameter group's learning rate in a 0-dim tensor on its parameters' device (updated in place by
     :func:`set_learning_rate`), and, when ``capturable``, make the optimizer's step a sequence of device kernels."""
     for group in optimizer.param_groups:
         device = group["params"][0].device
-        if not isinstance(group["lr"], th.Tensor):  # CUDA's fused Adam reads a float32 learning rate
-            dtype = th.float32 if device.type == "cuda" else th.float64
+        if not isinstance(group["lr"], th.Tensor):
+            dtype = th.float32 if device.type == "cuda" else th.float64  # CUDA's fused Adam reads a float32 one
             group["lr"] = th.tensor(float(group["lr"]), dtype=dtype, device=device)
         group["capturable"] = capturable
     if capturable:
@@ -52,10 +53,10 @@ class CapturedUpdate:
 
     :param update: the eager update function: ``(batch, polyak) -> stats``; it must not read a device tensor on the
         host, nor branch on one.
-    :param optimizers: the optimizers the update steps (made capturable at capture).
-    :param use_graph: False runs everything but the graph (static inputs, tensor learning rates): the CPU's view of
-        this path, for tests.
+    :param get_optimizers: the optimizers the update steps (made capturable at capture).
     :param device: the CUDA device of the update (its streams and graphs are made there).
+    :param capture: False runs everything but the graph (static inputs, tensor learning rates): the CPU's view of
+        this path, for tests.
     """
 
     WARMUP = 3
@@ -63,36 +64,37 @@ class CapturedUpdate:
     def __init__(
         self,
         update: UpdateFunction,
-        optimizers: Callable[[], Sequence[th.optim.Optimizer]],
-        use_graph: bool = True,
-        device: th.device | None = None,
+        get_optimizers: Callable[[], Sequence[th.optim.Optimizer]],
+        device: th.device,
+        capture: bool = True,
     ) -> None:
-        self.update, self.optimizers, self.use_graph, self.device = update, optimizers, use_graph, device
-        self.calls = 0
+        self.update, self.get_optimizers, self.device, self.capture = update, get_optimizers, device, capture
+        self.warmup_calls = 0
         self.static_batch: NamedTuple | None = None
         self.graphs: dict[bool, th.cuda.CUDAGraph] = {}
         self.outputs: dict[bool, Stats] = {}
-        for optimizer in optimizers():
-            learning_rate_tensors(optimizer, capturable=False)
+        for optimizer in get_optimizers():
+            prepare_for_capture(optimizer, capturable=False)
 
     def __call__(self, batch: NamedTuple, polyak: bool) -> Stats:
-        if not self.use_graph:
+        if not self.capture:
             return self._run(batch, polyak)
         with th.cuda.device(self.device):
             return self._run(batch, polyak)
 
     def _run(self, batch: NamedTuple, polyak: bool) -> Stats:
-        if self.calls < self.WARMUP:
-            self.calls += 1
-            return self._eager(batch, polyak)
         if self.static_batch is not None and [f.shape for f in self.static_batch] != [f.shape for f in batch]:
-            self.static_batch, self.graphs, self.outputs = None, {}, {}  # another batch size: captured again
+            self.static_batch, self.graphs, self.outputs = None, {}, {}  # another batch size: warmed up, captured
+            self.warmup_calls = 0
+        if self.warmup_calls < self.WARMUP:
+            self.warmup_calls += 1
+            return self._eager(batch, polyak)
         if self.static_batch is None:
             self.static_batch = type(batch)(*(field.clone() for field in batch))
         else:
             for static, field in zip(self.static_batch, batch, strict=True):
                 static.copy_(field)
-        if not self.use_graph:
+        if not self.capture:
             return self.update(self.static_batch, polyak)
         if polyak not in self.graphs:
             self._capture(polyak)
@@ -100,7 +102,7 @@ class CapturedUpdate:
         return {key: value.clone() for key, value in self.outputs[polyak].items()}
 
     def _eager(self, batch: NamedTuple, polyak: bool) -> Stats:
-        if not self.use_graph:
+        if not self.capture:
             return self.update(batch, polyak)
         stream = th.cuda.Stream()
         stream.wait_stream(th.cuda.current_stream())
@@ -110,8 +112,8 @@ class CapturedUpdate:
         return stats
 
     def _capture(self, polyak: bool) -> None:
-        for optimizer in self.optimizers():
-            learning_rate_tensors(optimizer, capturable=True)
+        for optimizer in self.get_optimizers():
+            prepare_for_capture(optimizer, capturable=True)
         graph = th.cuda.CUDAGraph()
         with th.cuda.graph(graph):
             self.outputs[polyak] = self.update(self.static_batch, polyak)

@@ -18,6 +18,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
+from sb3_mtte.common.update_monitor import record_train_stats
 from sb3_mtte.common.utils import check_multitask_env, get_task_names, task_log_key
 
 
@@ -219,5 +220,6 @@ class MultiTaskEvalCallback(BaseCallback):
                 task_names=np.asarray(self.task_names),
             )
         self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
+        record_train_stats(self.model)
         self.logger.dump(self.num_timesteps)
         return result

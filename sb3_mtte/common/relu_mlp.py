@@ -7,11 +7,11 @@ backward pass masks each input gradient in the buffer its matmul just wrote. The
 layer-by-layer graph (``tests/test_relu_mlp.py`` compares values and gradients).
 
 The layer-by-layer graph is used instead inside ``torch.func`` transforms (``vmap``/``grad``/``vjp``), under
-autocast, within ``with fused_relu_mlp(False):``, on a PyTorch release outside :data:`TESTED_TORCH` (CI's release;
-setup.cfg admits every release stable-baselines3 does), and on a PyTorch without the two private functions that tell
-a transform or a vmapped tensor apart (``torch._C._are_functorch_transforms_active``, ``torch._C._dispatch_keys``).
-The node is differentiable once: a backward pass through it with ``create_graph=True`` raises an error that says to
-turn it off.
+autocast, within ``with fused_relu_mlp(False):``, on a PyTorch release outside :data:`TESTED_TORCH` (the
+release ``.ci/run`` tests; setup.cfg admits every release stable-baselines3 does), and on a PyTorch without the two
+private functions that tell a transform or a vmapped tensor apart (``torch._C._are_functorch_transforms_active``,
+``torch._C._dispatch_keys``). The node is differentiable once: a backward pass through it with ``create_graph=True``
+raises an error that says to turn it off.
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ _threshold_backward = th.ops.aten.threshold_backward
 _enabled = True
 
 TESTED_TORCH = ((2, 13), (2, 14))
-"""PyTorch releases ``[lower, upper)`` (major, minor) the fused node is tested on (CI installs torch 2.13.0)."""
+"""PyTorch releases ``[lower, upper)`` (major, minor) the fused node is tested on (``.ci/run`` pins 2.13.0)."""
 
 
 @contextmanager

@@ -30,6 +30,7 @@ class UpdateMonitor:
     :param deferred: keep both on the device until :meth:`read` (else check and record at once).
     :param record: records one ``train`` call's statistics (numpy arrays) to the logger.
     :param mean_keys: statistics averaged over the calls between two reads (the others: the last call's).
+    :param n_updates: the model's count of updates so far (where the device's count starts).
     """
 
     def __init__(
@@ -37,7 +38,8 @@ class UpdateMonitor:
         device: th.device,
         deferred: bool,
         record: Callable[[dict[str, Any]], None],
-        mean_keys: tuple[str, ...] = (),
+        mean_keys: tuple[str, ...],
+        n_updates: int,
     ) -> None:
         self.deferred = deferred
         self.record = record
@@ -45,12 +47,12 @@ class UpdateMonitor:
         self.names: list[str] = []
         self.first_bad = th.full((3,), -1, dtype=th.long, device=device)
         """(loss index in :attr:`names`, update, env step) where a loss was first not finite; -1 while none."""
-        self.update = th.zeros((), dtype=th.long, device=device)
-        """Updates seen (a device counter, so that a captured update can count itself)."""
+        self.n_updates = th.full((), n_updates, dtype=th.long, device=device)
+        """The model's updates (a device counter, so that a captured update can count itself)."""
         self.env_step = th.zeros((), dtype=th.long, device=device)
         self.pending: Stats = {}
         self.sums: Stats = {}
-        self.calls = 0
+        self.n_train_calls = 0
 
     def set_env_step(self, env_step: int) -> None:
         """The env step of the coming updates (written on the device without waiting)."""
@@ -66,14 +68,14 @@ class UpdateMonitor:
             self.names.append(name)
         bad = ~th.isfinite(loss.detach()).all()
         first = bad & (self.first_bad[0] < 0)
-        where = th.stack([th.full_like(self.update, self.names.index(name)), self.update + 1, self.env_step])
+        where = th.stack([th.full_like(self.n_updates, self.names.index(name)), self.n_updates + 1, self.env_step])
         self.first_bad.copy_(th.where(first, where, self.first_bad))
 
     def count_update(self) -> None:
         if self.deferred:
-            self.update.add_(1)
+            self.n_updates.add_(1)
 
-    def keep(self, stats: Stats) -> None:
+    def add_train_stats(self, stats: Stats) -> None:
         """Record one ``train`` call's statistics now (immediate) or at the next :meth:`read` (deferred); the tensors
         are the caller's to give (not written afterwards)."""
         if not self.deferred:
@@ -84,7 +86,7 @@ class UpdateMonitor:
             if key in stats:
                 value = stats[key].detach().double()
                 self.sums[key] = self.sums[key] + value if key in self.sums else value
-        self.calls += 1
+        self.n_train_calls += 1
 
     def check(self) -> None:
         """Raise for a non-finite loss seen since the start (deferred only)."""
@@ -104,9 +106,17 @@ class UpdateMonitor:
             return
         stats = dict(self.pending)
         for key, total in self.sums.items():
-            stats[key] = total / self.calls
+            stats[key] = total / self.n_train_calls
         self.record(_on_host(stats))
-        self.pending, self.sums, self.calls = {}, {}, 0
+        self.pending, self.sums, self.n_train_calls = {}, {}, 0
+
+
+def record_train_stats(model: Any) -> None:
+    """Record what ``model``'s update monitor keeps, if it has one: before a dump of the logger that is not the
+    model's own ``dump_logs`` (a checkpoint's, an evaluation's)."""
+    monitor = getattr(model, "update_monitor", None)
+    if monitor is not None:
+        monitor.read()
 
 
 def _on_host(stats: Stats) -> dict[str, Any]:

@@ -18,6 +18,11 @@ MAKE_ENV_FIX = "build the env with make_mt_env (make_mt_env('MT10'), or a list o
 ONE_TASK_FIX = "or wrap one single-task env in OneHotTaskWrapper (DummyVecEnv([lambda: OneHotTaskWrapper(env)]))"
 
 
+def env_fix(n_envs: int, min_tasks: int = 1) -> str:
+    """How to build the env: make_mt_env, and for one sub-env where one task is enough, the one-hot wrapper."""
+    return f"{MAKE_ENV_FIX}, {ONE_TASK_FIX}" if n_envs == 1 and min_tasks == 1 else MAKE_ENV_FIX
+
+
 def short_task_name(name: str) -> str:
     """``"button-press-topdown-v3"`` -> ``"button-press-topdown"``."""
     return name[:-3] if name.endswith(("-v2", "-v3")) else name
@@ -68,16 +73,16 @@ def check_multitask_env(env: VecEnv, n_tasks: int | None = None, min_tasks: int 
     obs_space = env.observation_space
     if not isinstance(obs_space, spaces.Box) or len(obs_space.shape) != 1:
         raise ValueError(
-            f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}: {MAKE_ENV_FIX}, "
-            f"{ONE_TASK_FIX}."
+            f"A multi-task env needs a flat Box observation (state + one-hot), got {obs_space}: "
+            f"{env_fix(n_envs, min_tasks)}."
         )
     if n_tasks is not None and n_envs != n_tasks:
         raise ValueError(f"Expected an env with one sub-env per task ({n_tasks} tasks), got {n_envs} sub-envs.")
     if obs_space.shape[0] <= n_envs:
         raise ValueError(
             f"Observation of size {obs_space.shape[0]} cannot hold a state and a {n_envs}-dim one-hot: "
-            f"the env must have one sub-env per task and append the task one-hot to the state: {MAKE_ENV_FIX}, "
-            f"{ONE_TASK_FIX}."
+            f"the env must have one sub-env per task and append the task one-hot to the state: "
+            f"{env_fix(n_envs, min_tasks)}."
         )
     return n_envs
 
@@ -91,8 +96,7 @@ def check_one_hot(obs: np.ndarray, n_tasks: int) -> None:
     if not np.array_equal(tail, np.eye(n_tasks, dtype=tail.dtype)):
         raise ValueError(
             f"Sub-env i must observe the one-hot e_i in its last {n_tasks} entries (one sub-env per task, "
-            f"one-hot appended); the observations' last entries are not an identity matrix: {MAKE_ENV_FIX}, "
-            f"{ONE_TASK_FIX}."
+            f"one-hot appended); the observations' last entries are not an identity matrix: {env_fix(n_tasks)}."
         )
 
 

@@ -15,6 +15,7 @@ from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper
 
 from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.utils import get_task_names
+from sb3_mtte.common.update_monitor import record_train_stats
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import Checkpoint, atomic_save, checkpoint_paths, find_checkpoints, restart_envs
 
@@ -125,6 +126,7 @@ class MultiTaskCheckpointCallback(BaseCallback):
     def save(self, episode_boundary: bool) -> Checkpoint:
         """Take a checkpoint now (restarting the envs first when at an episode boundary)."""
         steps = self.num_timesteps
+        record_train_stats(self.model)
         if self.model.logger.name_to_value:  # records waiting for the next dump would die with a killed process
             self.model.logger.dump(steps)
         if episode_boundary:

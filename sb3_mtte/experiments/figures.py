@@ -41,6 +41,7 @@ from sb3_mtte.experiments.runs import (
 )
 from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
 from sb3_mtte.experiments.variants import variant_labels
+from sb3_mtte.mtsac.task_logs import CRITIC_LOSS_KEY
 
 Groups = dict[str, list[Run]]
 """Algorithm label -> runs (its seeds), for one benchmark."""
@@ -193,7 +194,7 @@ def _twin_panel(ax: Axes, success: Series | None, other: Series | None, other_la
 
 
 def _mean_critic_loss(run: Run) -> Series | None:
-    series = [task_scalar(run, "train/critic_loss", i) for i in range(run.n_tasks)]
+    series = [task_scalar(run, CRITIC_LOSS_KEY, i) for i in range(run.n_tasks)]
     series = [s for s in series if s is not None]
     return mean_std(series)[:2] if series else None
 
@@ -203,7 +204,7 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
     with_loss = {
         label: runs
         for label, runs in groups.items()
-        if any(task_scalar(r, "train/critic_loss", 0) is not None for r in runs)
+        if any(task_scalar(r, CRITIC_LOSS_KEY, 0) is not None for r in runs)
     }
     for label in label_order(list(with_loss)):
         runs = with_loss[label]
@@ -211,7 +212,7 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
         fig, axes = panel_grid(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
         for ax, i in zip(axes, _selected_tasks(names, opts.tasks), strict=True):
             success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
-            loss = _mean_series(runs, lambda r, i=i: task_scalar(r, "train/critic_loss", i), opts)
+            loss = _mean_series(runs, lambda r, i=i: task_scalar(r, CRITIC_LOSS_KEY, i), opts)
             _twin_panel(ax, success, loss, "soft Bellman error")
             ax.set_title(short_task_name(names[i]), fontsize=9)
         wrapped_title(

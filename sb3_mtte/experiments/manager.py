@@ -219,13 +219,15 @@ class MultiTaskExperimentManager(ExperimentManager):
 
     # ---- set-up
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
-        """rl-zoo's set-up, or a resumed run's; a ``ValueError`` of the hyperparameters, env or model (a value out
-        of range) ends with its one line."""
+        """rl-zoo's set-up, or a resumed run's; a ``ValueError`` that this package or rl-zoo raises on the
+        hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback."""
         try:
             if self.launch.resume_dir is not None:
                 return self._setup_resume()
             result = super().setup_experiment()
         except ValueError as error:
+            if not _raised_by(error, ("sb3_mtte", "rl_zoo3")):
+                raise
             raise SystemExit(f"{self.algo} on {self.env_id}: {error}") from None
         if result is not None:
             self._write_run_info(*result)
@@ -362,3 +364,12 @@ class MultiTaskExperimentManager(ExperimentManager):
         )
         if self._eval_env is not None:
             self._eval_env.close()
+
+
+def _raised_by(error: BaseException, packages: tuple[str, ...]) -> bool:
+    """Whether the frame that raised ``error`` is code of one of ``packages``."""
+    traceback = error.__traceback__
+    while traceback is not None and traceback.tb_next is not None:
+        traceback = traceback.tb_next
+    module = traceback.tb_frame.f_globals.get("__name__", "") if traceback is not None else ""
+    return module.split(".")[0] in packages

@@ -40,12 +40,12 @@ from sb3_mtte.experiments import command_prog
 from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.run_info import read_json
 from sb3_mtte.experiments.runs import Run, Series, discover_runs, results_benchmark, task_scalar
+from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 RECORD_VERSION = 2
 DEFAULT_RECORDS_DIR = Path("docs/records")
 PROBE_KEYS = ("task_probe_accuracy", "task_probe_accuracy_of_mean", "z_std")
 TRAINING_POINTS = 200
-CLIP_FRACTION_KEY = "train/q_loss_clip_fraction"
 
 
 def _curve(run: Run) -> dict[str, Any] | None:
@@ -60,7 +60,7 @@ def _curve(run: Run) -> dict[str, Any] | None:
 
 def _training(run: Run) -> dict[str, Any] | None:
     """Per-task critic loss and the clip's share of dropped samples at up to TRAINING_POINTS evenly spaced dumps."""
-    losses = [task_scalar(run, "train/critic_loss", i) for i in range(run.n_tasks)]
+    losses = [task_scalar(run, CRITIC_LOSS_KEY, i) for i in range(run.n_tasks)]
     if not losses or any(series is None for series in losses):
         return None
     steps = losses[0][0]
@@ -221,9 +221,7 @@ def _training_scalars(training: dict[str, Any], run: Run) -> dict[str, Series]:
     """The log keys of a record's ``training`` field, as a run folder's scalars."""
     steps = np.asarray(training["env_steps"], dtype=float)
     losses = np.asarray(training["critic_loss"], dtype=float)
-    scalars = {
-        task_log_key("train/critic_loss", i, name): (steps, losses[:, i]) for i, name in enumerate(run.task_names)
-    }
+    scalars = {task_log_key(CRITIC_LOSS_KEY, i, name): (steps, losses[:, i]) for i, name in enumerate(run.task_names)}
     clip = training.get("q_loss_clip_fraction")
     if clip is not None:
         values = np.asarray([np.nan if v is None else v for v in clip], dtype=float)

@@ -89,7 +89,8 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         gradients.
     :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
     :param update_path: ``"auto"`` (a CUDA graph of the update on CUDA where the update allows it, else eager),
-        ``"eager"`` or ``"cuda_graph"`` (:mod:`sb3_mtte.mtsac.update_path`). Same numbers on either path.
+        ``"eager"`` or ``"cuda_graph"`` (:mod:`sb3_mtte.mtsac.update_path`). The same numbers on the CPU; on CUDA
+        the graph's agree within float tolerance (its learning rates are float32 tensors).
     :param action_noise: optional exploration noise.
     :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
     :param replay_buffer_kwargs: its keyword arguments.
@@ -335,7 +336,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
         excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps", "update_hook"]
-        excluded += ["monitor", "_update_runner"]
+        excluded += ["update_monitor", "_update_runner"]
         return [*super()._excluded_save_params(), *excluded]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
@@ -346,7 +347,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
 
     def save(self, path, exclude=None, include=None) -> None:
         """Save the model; the global RNG states are saved with it so that a resumed run continues exactly."""
-        self.monitor.check()
+        self.update_monitor.check()
         self.rng_state = capture_rng_state()
         try:
             super().save(path, exclude=exclude, include=include)
@@ -379,7 +380,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         progress_bar: bool = False,
     ) -> SelfMTSAC:
         super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)
-        self.monitor.check()
+        self.update_monitor.check()
         if self.num_timesteps <= self.learning_starts:  # SB3 updates once num_timesteps > learning_starts
             warnings.warn(
                 f"learn ended at {self.num_timesteps} env steps, not past learning_starts={self.learning_starts}: "

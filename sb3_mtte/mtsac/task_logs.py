@@ -9,6 +9,13 @@ import numpy as np
 
 from sb3_mtte.common.utils import task_log_key
 
+CRITIC_LOSS_KEY = "train/critic_loss"
+"""The mean of the tasks' soft Bellman errors; ``<key>/<i>_<task>`` each task's."""
+CLIP_FRACTION_KEY = "train/q_loss_clip_fraction"
+"""The share of samples the clip of Eq. 16 dropped, averaged over the updates between two dumps."""
+MEAN_STATS = ("q_loss_clip_fraction",)
+"""The update statistics logged as their mean between two dumps (the others: the last update's)."""
+
 
 class PerTaskLogMixin:
     """Records ``train/critic_loss/<i>_<task>`` and ``rollout/success/<i>_<task>`` beside SB3's keys.
@@ -25,14 +32,14 @@ class PerTaskLogMixin:
     def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/actor_loss", float(stats["actor_loss"]))
-        self.logger.record("train/critic_loss", float(stats["critic_loss"].mean()))
+        self.logger.record(CRITIC_LOSS_KEY, float(stats["critic_loss"].mean()))
         self.logger.record("train/ent_coef", float(stats["ent_coef"].mean()))
         if "ent_coef_loss" in stats:
             self.logger.record("train/ent_coef_loss", float(stats["ent_coef_loss"]))
         if "q_loss_clip_fraction" in stats:
-            self.logger.record_mean("train/q_loss_clip_fraction", float(stats["q_loss_clip_fraction"].mean()))
+            self.logger.record_mean(CLIP_FRACTION_KEY, float(stats["q_loss_clip_fraction"].mean()))
         for i in range(self.n_tasks):
-            self.logger.record(task_log_key("train/critic_loss", i, self._task_name(i)), float(stats["critic_loss"][i]))
+            self.logger.record(task_log_key(CRITIC_LOSS_KEY, i, self._task_name(i)), float(stats["critic_loss"][i]))
 
     def _task_name(self, index: int) -> str | None:
         return self.task_names[index] if index < len(self.task_names) else None

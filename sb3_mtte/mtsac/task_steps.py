@@ -30,7 +30,7 @@ class TaskStepMixin:
     """
 
     update_hook: UpdateHook
-    monitor: UpdateMonitor
+    update_monitor: UpdateMonitor
     actor: MultiTaskActor
     critic: nn.Module
 
@@ -79,9 +79,9 @@ class TaskStepMixin:
         self, optimizer: th.optim.Optimizer, name: str, task_losses: th.Tensor, task_weights: th.Tensor
     ) -> th.Tensor:
         """Minimise ``sum_i w_i L_i`` by one step of ``optimizer``; a non-finite loss stops training (before the
-        step, or at the next read of :attr:`monitor` on the CUDA-graph path)."""
+        step, or at the next read of :attr:`update_monitor` on the CUDA-graph path)."""
         loss = (task_weights * task_losses).sum()
-        self.monitor.check_finite(name, loss)
+        self.update_monitor.check_finite(name, loss)
         optimizer.zero_grad()
         loss.backward()
         optimizer.step()
@@ -106,7 +106,7 @@ class TaskStepMixin:
         """
         kept = self._take_kept_rows(module)  # taken first: a non-finite loss leaves no graph behind
         loss = (task_weights * task_losses).sum()
-        self.monitor.check_finite(name, loss)
+        self.update_monitor.check_finite(name, loss)
         params = [p for group in optimizer.param_groups for p in group["params"] if p.requires_grad]
         grads = self._per_task_gradients(module, kept, task_losses, params)
         direction = self.update_hook.combine_gradients(grads, task_weights)

@@ -13,10 +13,11 @@ from typing import Any
 
 import torch as th
 
-from sb3_mtte.common.captured_update import CapturedUpdate, Stats, set_learning_rate
+from sb3_mtte.common.captured_update import CapturedUpdate, set_learning_rate
 from sb3_mtte.common.update_hooks import UpdateHook
-from sb3_mtte.common.update_monitor import UpdateMonitor
+from sb3_mtte.common.update_monitor import Stats, UpdateMonitor
 from sb3_mtte.common.utils import polyak_update
+from sb3_mtte.mtsac.task_logs import MEAN_STATS
 
 UPDATE_PATHS = ("auto", "eager", "cuda_graph")
 
@@ -56,14 +57,19 @@ class UpdatePathMixin:
             )
         return self.update_path
 
-    def _setup_update_path(self, use_graph: bool = True) -> None:
-        """Build the monitor and the runner of the resolved path (``use_graph=False``: the graph path's static
-        inputs and deferred reads without the graph, which the CPU can run)."""
-        if not hasattr(self, "update_path"):  # a model saved before the argument existed
-            self.update_path = "auto"
-        path = self.resolved_update_path() if use_graph else "cuda_graph"
-        self.monitor = UpdateMonitor(
-            self.device, path != "eager", self._record_train_stats, mean_keys=("q_loss_clip_fraction",)
+    def _setup_update_path(self, capture: bool = True) -> None:
+        """Build the monitor and the runner of the resolved path (``capture=False``: the graph path's static
+        inputs and deferred reads without the graph, which the CPU can run). What the old monitor kept is read
+        first (its statistics recorded, a non-finite loss raised)."""
+        if getattr(self, "update_monitor", None) is not None:
+            self.update_monitor.read()
+        path = self.resolved_update_path() if capture else "cuda_graph"
+        self.update_monitor = UpdateMonitor(
+            self.device,
+            path != "eager",
+            self._record_train_stats,
+            MEAN_STATS,
+            self._n_updates,  # type: ignore[attr-defined]
         )
         if path == "eager":
             for optimizer in self._optimizers():  # a checkpoint of the graph path keeps its optimizers' flag
@@ -71,22 +77,22 @@ class UpdatePathMixin:
                     group["capturable"] = False
             self._update_runner = self._update
         else:
-            self._update_runner = CapturedUpdate(self._update, self._optimizers, use_graph, self.device)
+            self._update_runner = CapturedUpdate(self._update, self._optimizers, self.device, capture)
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         optimizers = [self.actor.optimizer, self.critic.optimizer]
         return optimizers if self.ent_coef_optimizer is None else [*optimizers, self.ent_coef_optimizer]
 
-    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer]) -> None:  # type: ignore[override]
         """SB3's, writing a learning rate held in a tensor in place (the CUDA graph reads it there)."""
         learning_rate = self.lr_schedule(self._current_progress_remaining)  # type: ignore[attr-defined]
         self.logger.record("train/learning_rate", learning_rate)  # type: ignore[attr-defined]
-        set_learning_rate(optimizers if isinstance(optimizers, list) else [optimizers], learning_rate)
+        set_learning_rate(optimizers, learning_rate)
 
     def train(self, gradient_steps: int, batch_size: int = 128) -> None:
         self.policy.set_training_mode(True)  # type: ignore[attr-defined]
         self._update_learning_rate(self._optimizers())
-        self.monitor.set_env_step(self.num_timesteps)  # type: ignore[attr-defined]
+        self.update_monitor.set_env_step(self.num_timesteps)  # type: ignore[attr-defined]
         stats: dict[str, list[th.Tensor]] = {}
         for gradient_step in range(gradient_steps):
             replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[attr-defined]
@@ -94,14 +100,14 @@ class UpdatePathMixin:
             for key, value in self._update_runner(replay_data, polyak).items():
                 stats.setdefault(key, []).append(value)
         self._n_updates += gradient_steps  # type: ignore[attr-defined]
-        self.monitor.keep({key: th.stack(values).mean(0) for key, values in stats.items()})
+        self.update_monitor.add_train_stats({key: th.stack(values).mean(0) for key, values in stats.items()})
 
     def _update(self, replay_data: Any, polyak: bool) -> Stats:
         """One update (:meth:`_sac_update`), then the Polyak step of the target critics when ``polyak``."""
         stats = self._sac_update(replay_data)  # type: ignore[attr-defined]
         if polyak:
             polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
-        self.monitor.count_update()
+        self.update_monitor.count_update()
         return stats
 
     def set_parameters(self, *args: Any, **kwargs: Any) -> None:
@@ -111,5 +117,5 @@ class UpdatePathMixin:
 
     def dump_logs(self) -> None:
         """Read the monitor (a non-finite loss stops training here at the latest), then SB3's dump."""
-        self.monitor.read()
+        self.update_monitor.read()
         super().dump_logs()  # type: ignore[misc]
