@@ -13,17 +13,21 @@ per task), measured in one run; prints one JSON object (``docs/results/gpu_check
 
 from __future__ import annotations
 
+import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait before torch loads
+
+# isort: split
+
 import argparse
 import json
 import os
 import platform
-import time
 
 import torch as th
-from bench_updates import VARIANTS, fill_buffer, interleaved_medians, quiet, synthetic_env
+from bench_updates import VARIANTS, fill_buffer, interleaved_medians, learn_rate, quiet, synthetic_env
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_mtte import MTSAC, MTSACTE, __version__, make_mt_env
+from sb3_mtte.experiments.env_ids import default_vec_env
 
 PAPER_ENV_STEPS = {"MT10": 50_000_000, "MT50": 100_000_000}
 """The paper's MT10 budget (5M env steps per task) and MT50 at 2M per task."""
@@ -33,7 +37,7 @@ PATHS = {"eager": {"update_path": "eager", "replay_buffer_kwargs": {"storage": "
 def update_models(n_tasks: int, device: str) -> dict[str, object]:
     """Every MTSAC variant and MTSACTE's every-step update on each path, with a filled buffer."""
     rows, models = 512, {}
-    variants = {**{label: (MTSAC, policy, kwargs) for label, (policy, kwargs) in VARIANTS.items()}}
+    variants = {label: (MTSAC, policy, kwargs) for label, (policy, kwargs) in VARIANTS.items()}
     variants["MTSACTE-update"] = (MTSACTE, "MlpPolicy", {})
     for label, (cls, policy, kwargs) in variants.items():
         for path, path_kwargs in PATHS.items():
@@ -58,29 +62,17 @@ def bench_updates(n_tasks: int, device: str, repeats: int) -> dict:
     }
 
 
-def env_for(benchmark: str, path: str):
-    subprocesses = path == "fast" and (os.cpu_count() or 1) > int(benchmark[2:])
-    cls = SubprocVecEnv if subprocesses else DummyVecEnv
-    return make_mt_env(benchmark, seed=0, vec_env_cls=cls), cls.__name__
-
-
 def bench_end_to_end(benchmark: str, device: str, vector_steps: int) -> dict:
     """Env steps/s of learn() after learning starts (its random warm-up untimed), per algorithm and path."""
     rates, vec_envs = {}, {}
     for path, path_kwargs in PATHS.items():
-        env, vec_envs[path] = env_for(benchmark, path)
-        n_tasks = env.num_envs
-        for label, cls in (("MTSAC", MTSAC), ("MTSACTE", MTSACTE)):
-            model = quiet(cls("MlpPolicy", env, learning_starts=256 * n_tasks, buffer_size=2000 * n_tasks,
-                              device=device, seed=0, **path_kwargs))  # fmt: skip
-            model.learn(256 * n_tasks + 10 * n_tasks)  # random warm-up, the first updates, MTSACTE's recomputation
-            if device == "cuda":
-                th.cuda.synchronize()
-            start = time.perf_counter()
-            model.learn(vector_steps * n_tasks, reset_num_timesteps=False)
-            if device == "cuda":
-                th.cuda.synchronize()
-            rates.setdefault(label, {})[path] = round(vector_steps * n_tasks / (time.perf_counter() - start), 1)
+        cls = SubprocVecEnv if path == "fast" and default_vec_env(benchmark) == "subproc" else DummyVecEnv
+        env, vec_envs[path] = make_mt_env(benchmark, seed=0, vec_env_cls=cls), cls.__name__
+        for label, algorithm in (("MTSAC", MTSAC), ("MTSACTE", MTSACTE)):
+            n_tasks = env.num_envs
+            model = quiet(algorithm("MlpPolicy", env, learning_starts=256 * n_tasks, buffer_size=2000 * n_tasks,
+                                    device=device, seed=0, **path_kwargs))  # fmt: skip
+            rates.setdefault(label, {})[path] = round(learn_rate(model, vector_steps), 1)
         env.close()
     hours = {label: {p: round(PAPER_ENV_STEPS[benchmark] / r / 3600, 1) for p, r in by_path.items()}
              for label, by_path in rates.items()}  # fmt: skip

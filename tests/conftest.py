@@ -401,6 +401,7 @@ def assert_state_equal(a: Any, b: Any, path: str = "") -> None:
 
 
 # ---------------------------------------------------------------------------------------------------- zoo
+CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 ENV = "toy-conflict"
 TINY = ["--no-progress", "--verbose", "0", "--seed", "3"]
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
+from conftest import CUDA
 from stable_baselines3 import SAC
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.save_util import load_from_pkl, save_to_pkl
@@ -382,7 +383,7 @@ def test_auto_storage_is_the_host_on_a_cpu_and_an_unknown_storage_is_refused():
         top_k_buffer(storage="gpu")
 
 
-@pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
+@CUDA
 @pytest.mark.parametrize("storage", ["device", "pinned"])
 def test_cuda_storages_sample_the_host_batches(storage):
     host = top_k_buffer()

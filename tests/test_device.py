@@ -5,11 +5,9 @@ from __future__ import annotations
 
 import pytest
 import torch as th
-from conftest import small_model_kwargs
+from conftest import CUDA, small_model_kwargs
 
 from sb3_mtte import MTSAC, MTSACTE, make_mt_env
-
-CUDA = pytest.mark.skipif(not th.cuda.is_available(), reason="needs a CUDA GPU")
 
 
 def test_auto_device_is_cuda_when_present_else_cpu() -> None:

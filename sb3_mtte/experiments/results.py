@@ -58,7 +58,7 @@ class BenchmarkStatistics:
     aggregates: dict[str, dict[str, Estimate]]
     ours: str | None
     improvement: dict[str, Estimate]
-    reward_functions: tuple[str, ...] = ()
+    reward_function_versions: tuple[str, ...] = ()
 
 
 def ours_label(groups: dict[str, list[Run]]) -> str | None:
@@ -108,8 +108,8 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
     if stats.improvement:
         note += f"; P({stats.ours} > X): probability that a run of {stats.ours} beats a run of X on a task"
     note += ". A run's final success is its final evaluation (success.json) when present, else its last evaluation."
-    if stats.reward_functions:
-        note += f" Meta-World reward function {' and '.join(stats.reward_functions)}."
+    if stats.reward_function_versions:
+        note += f" Meta-World reward function {' and '.join(stats.reward_function_versions)}."
     if published:
         by_source: dict[str, list[str]] = {}
         for label, source in paper_sources().items():

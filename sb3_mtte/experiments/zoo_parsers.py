@@ -57,15 +57,18 @@ class CheckedStoreDict(StoreDict):
     line naming it."""
 
     def __call__(self, parser: argparse.ArgumentParser, namespace: Any, values: Any, option_string: Any = None) -> None:
-        for item in values:
-            try:
-                super().__call__(parser, namespace, [item], option_string)
-            except Exception as error:  # rl-zoo evaluates the value: any error of Python's
-                raise SystemExit(
-                    f"{option_string} {item}: {error}; each value is Python, strings quoted (batch_size:64 "
-                    f"policy:\"'MlpPolicy'\")."
-                ) from None
-        super().__call__(parser, namespace, values, option_string)
+        try:
+            super().__call__(parser, namespace, values, option_string)
+        except Exception:  # rl-zoo evaluates the values: any error of Python's; name the item that raised it
+            for item in values:
+                try:
+                    super().__call__(parser, argparse.Namespace(), [item], option_string)
+                except Exception as error:
+                    raise SystemExit(
+                        f"{option_string} {item}: {error}; each value is Python, strings quoted (batch_size:64 "
+                        f"policy:\"'MlpPolicy'\")."
+                    ) from None
+            raise
 
 
 class ZooParser(argparse.ArgumentParser):
