@@ -253,6 +253,22 @@ def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
         assert list(data["timesteps"]) == [200, 400]
 
 
+def test_a_resumed_run_keeps_its_progress_bar_setting(tmp_path, monkeypatch):
+    from sb3_mtte.experiments import launcher
+
+    run = tiny_train(tmp_path, "mtsac_mt", steps=100)  # started with --no-progress
+    argvs = []
+    monkeypatch.setattr(launcher, "run_zoo_train", lambda argv, launch: argvs.append(argv))
+    main(["train", "--resume", str(run)])
+    main(["train", "--resume", str(run), "-P"])
+    info = read_run_info(run)
+    info["zoo_args"]["progress"] = True  # a run started with the bar
+    (run / "run_info.json").write_text(json.dumps(info))
+    main(["train", "--resume", str(run)])
+    main(["train", "--resume", str(run), "--no-progress"])
+    assert ["-P" in argv for argv in argvs] == [False, True, True, False]
+
+
 def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
     """Every evaluation at 0 success: best_model.zip is the model of the last evaluation, not of the first."""
     from sb3_mtte.common import evaluation

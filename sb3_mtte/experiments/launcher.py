@@ -128,7 +128,8 @@ def check_conf_file(zoo_argv: Sequence[str]) -> None:
 
 
 def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None) -> tuple[str, dict[str, Any]]:
-    """The run folder to resume and its saved launcher options; adds the run's seed and log folder to ``zoo_argv``."""
+    """The run folder to resume and its saved launcher options (progress bar included); adds the run's seed and log
+    folder to ``zoo_argv``."""
     if env_id is None:
         raise SystemExit("--resume needs --algo and --env (or a run folder: --resume RUN_DIR).")
     log_folder = flag_value(zoo_argv, "-f", "--log-folder") or "logs"
@@ -143,7 +144,9 @@ def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None)
         zoo_argv += ["--seed", str(info["seed"])]
     if resume and not has_flag(zoo_argv, "-f", "--log-folder"):
         zoo_argv += ["-f", str(resume_dir.parent.parent)]
-    return str(resume_dir), dict(info.get("launcher") or {})
+    saved = dict(info.get("launcher") or {})
+    saved["progress"] = (info.get("zoo_args") or {}).get("progress", True)
+    return str(resume_dir), saved
 
 
 def _launch_options(
@@ -194,8 +197,8 @@ def train(argv: Sequence[str]) -> None:
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
     if ours.resume is None and not has_flag(zoo_argv, "--vec-env"):  # a resumed run keeps its own (args.yml)
         zoo_argv += ["--vec-env", default_vec_env(env_id)]
-    if not ours.no_progress and not has_flag(zoo_argv, "-P", "--progress"):
-        zoo_argv.append("-P")
+    if not ours.no_progress and saved.get("progress", True) and not has_flag(zoo_argv, "-P", "--progress"):
+        zoo_argv.append("-P")  # a resumed run keeps its own setting
     launch = _launch_options(ours, zoo_argv, algo, env_id, saved)
     missing = None if resume_dir or launch.hyperparams is None else missing_entries_message(algo, [env_id])
     if missing:

@@ -39,7 +39,9 @@ def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
     parser.add_argument(
         "--exp-id", type=int, default=None, metavar="N", help="run folder <env>_N (default: the next free N)"
     )
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument(
+        "--no-progress", action="store_true", help="no progress bar (a resumed run keeps its own unless -P is given)"
+    )
     parser.add_argument("--no-tensorboard", action="store_true", default=None, help="no tensorboard events")
     parser.add_argument(
         "--keep-buffers", type=int, default=None, metavar="K", help="replay-buffer checkpoints kept (default 1; 0: all)"
