@@ -139,3 +139,29 @@ def test_a_run_with_one_evaluation_is_drawn_as_a_dot(tmp_path, kept_figures):
             lines = [line for ax in kept_figures[figure].axes for line in ax.get_lines()]
             assert lines and all(len(line.get_xdata()) == len(evaluations) for line in lines), figure
             assert {line.get_marker() for line in lines} == {"o" if len(evaluations) == 1 else "None"}, figure
+
+
+def write_critic_log(run: Path, clip_fractions: list[float] | None) -> None:
+    """A progress.csv with every task's critic loss at 200, 400, ... env steps and, when given, the clip's share."""
+    columns = ["time/total_timesteps"] + [f"train/critic_loss/{i:02d}_{name}" for i, name in enumerate(TASKS)]
+    rows = [[200 * (k + 1)] + [1.0] * len(TASKS) for k in range(len(clip_fractions or [0.0, 0.0]))]
+    if clip_fractions is not None:
+        columns.append("train/q_loss_clip_fraction")
+        rows = [[*row, share] for row, share in zip(rows, clip_fractions, strict=True)]
+    lines = [",".join(columns)] + [",".join(str(value) for value in row) for row in rows]
+    (run / "progress.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_the_task_average_bellman_figure_names_the_share_the_clip_dropped(tmp_path, kept_figures):
+    """Fig. 6's panel of a clipped run says the mean and largest share of samples the clip dropped over its logging
+    windows; a run without the clip says nothing of it."""
+    write_critic_log(write_run(tmp_path / "clip", 0, [0.1, 0.2], 0.2, finished=True), [0.001, 0.0, 0.005])
+    write_critic_log(write_run(tmp_path / "none", 0, [0.1, 0.2], 0.2, finished=True), None)
+    titles = {}
+    for name in ("clip", "none"):
+        plot.main([str(tmp_path / name), "--out", str(tmp_path / name), "--reps", "10"])
+        titles[name] = [ax.get_title() for ax in kept_figures["bellman_avg_toy-conflict.png"].axes if ax.get_title()]
+    assert titles["clip"] == [
+        "SAC-MT: average over tasks; samples the clip dropped per logging window: mean 0.20%, max 0.50%"
+    ]
+    assert titles["none"] == ["SAC-MT: average over tasks"]

@@ -3,7 +3,8 @@ helpers every figure shares. The success figures, drawn from records as well, ar
 :mod:`sb3_mtte.experiments.summary_figures`.
 
 - ``bellman_<b>_<a>.png`` (Fig. 3): per task, soft Bellman error (critic loss) and success;
-- ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm;
+- ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm, with the
+  share of samples the clip of Eq. 16 dropped where it was on;
 - ``train_frequency_<b>_<a>.png`` (Fig. 5): per task, the fraction of recomputations in which it was in C_s
   over a sliding window, and its success;
 - ``nt_<b>_<a>.png``: mu, the task weights w and the task information in z (linear-probe accuracy) over time;
@@ -41,7 +42,7 @@ from sb3_mtte.experiments.runs import (
 )
 from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
 from sb3_mtte.experiments.variants import variant_labels
-from sb3_mtte.mtsac.task_logs import CRITIC_LOSS_KEY
+from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 Groups = dict[str, list[Run]]
 """Algorithm label -> runs (its seeds), for one benchmark."""
@@ -199,6 +200,15 @@ def _mean_critic_loss(run: Run) -> Series | None:
     return mean_std(series)[:2] if series else None
 
 
+def _clip_note(runs: Sequence[Run]) -> str:
+    """The share of samples the clip of Eq. 16 dropped, over every logging window of ``runs`` ('' without it)."""
+    series = [run.scalar(CLIP_FRACTION_KEY) for run in runs]
+    values = np.concatenate([values for _, values in filter(None, series)] or [np.empty(0)])
+    if values.size == 0:
+        return ""
+    return f"; samples the clip dropped per logging window: mean {values.mean():.2%}, max {values.max():.2%}"
+
+
 def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Path]) -> None:
     """Fig. 3 (per task, per algorithm) and Fig. 6 (task average, one row per algorithm)."""
     with_loss = {
@@ -229,7 +239,7 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
         twin = _twin_panel(ax, success, _mean_series(with_loss[label], _mean_critic_loss, opts), "soft Bellman error")
         ax.set_ylabel("success rate (%)", color="tab:blue", fontsize=8)
         twin.set_ylabel("soft Bellman error", color="tab:orange", fontsize=8)
-        ax.set_title(f"{label}: average over tasks", fontsize=9)
+        ax.set_title(f"{label}: average over tasks{_clip_note(with_loss[label])}", fontsize=9)
     axes[-1].set_xlabel(opts.xlabel)
     wrapped_title(fig, f"{bench}: success rate % (blue) and average soft Bellman error (orange)")
     save_figure(fig, opts.out / f"bellman_avg_{safe_name(bench)}.png", opts, written)
