@@ -88,17 +88,16 @@ def evaluate_model(
     """
     model_path = Path(model_path)
     data = _checkpoint_data(model_path)
-    info = run_info.read_run_info(model_path.parent)
-    env_id = env or (info or {}).get("env_id")
+    info = run_info.read_run_info(model_path.parent) or {}
+    env_id = env or info.get("env_id")
     if env_id is None:
         raise ValueError(f"No run_info.json beside {model_path}: pass --env.")
     benchmark = _benchmark_of(env_id)
-    if seed is None:
-        seed = int((info or {}).get("benchmark_seed", 0))
+    seed = int(info.get("benchmark_seed", 0)) if seed is None else seed
     _check_task_count(model_path, data, env_id, benchmark)
     elsewhere = _check_benchmark(model_path, data, info, env_id, benchmark, other_benchmark)
     model = _load_model_of_run(model_path, info, device)
-    version = (info or {}).get("reward_function_version")
+    version = info.get("reward_function_version")
     env_kwargs = {} if version is None else {"reward_function_version": version}
     start = time.time()
     result = evaluate_success(
@@ -110,13 +109,13 @@ def evaluate_model(
         "task_names": list(result.task_names),
         "model": str(model_path),
         "algorithm": data.get("algorithm_name"),
-        "algo": (info or {}).get("algo"),
-        "label": (info or {}).get("label"),
+        "algo": info.get("algo"),
+        "label": info.get("label"),
         "env_id": env_id,
         "benchmark": benchmark,
         "reward_function_version": reward_function_version(benchmark, env_kwargs),
         "seed": seed,
-        "run_seed": (info or {}).get("seed"),
+        "run_seed": info.get("seed"),
         "episodes_per_task": episodes,
         "deterministic": not stochastic,
         "timesteps": int(data.get("num_timesteps", 0)),
@@ -124,15 +123,20 @@ def evaluate_model(
         "time": run_info.now(),
     }
     out_path = Path(out) if out is not None else default_output_path(model_path, info, env_id if elsewhere else None)
+    _report(record, result, out_path)
+    return record
+
+
+def _report(record: dict[str, Any], result: SuccessResult, out_path: Path) -> None:
+    """Write ``record`` as JSON at ``out_path`` and print its per-task table."""
     out_path.parent.mkdir(parents=True, exist_ok=True)
     out_path.write_text(json.dumps(record, indent=2) + "\n")
     title = (
-        f"{record['label'] or record['algorithm']} on {benchmark} (seed {seed}), {record['timesteps']} steps, "
-        f"{episodes} episodes per task"
+        f"{record['label'] or record['algorithm']} on {record['benchmark']} (seed {record['seed']}), "
+        f"{record['timesteps']} steps, {record['episodes_per_task']} episodes per task"
     )
     print(format_table(result, title))
     print(f"\nWritten to {out_path}")
-    return record
 
 
 def _benchmark_of(env_id: str) -> str | list[str]:
