@@ -12,6 +12,7 @@ import pytest
 
 from sb3_mtte import plot
 from sb3_mtte.experiments import records, summary_figures, variants
+from sb3_mtte.experiments.bellman_table import bellman_table
 from sb3_mtte.experiments.results import runs_table
 from sb3_mtte.experiments.runs import Run, read_progress_csv
 from sb3_mtte.experiments.statistics import (
@@ -167,7 +168,9 @@ def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_r
     benchmarks = sorted(path.name for path in (ROOT / "docs" / "records").iterdir() if path.is_dir())
     assert benchmarks
     for env_id in benchmarks:
-        for name in (f"table1_{env_id}.md", f"runs_{env_id}.md", f"results_{env_id}.json"):
+        drawn = [f"table1_{env_id}.md", f"runs_{env_id}.md", f"results_{env_id}.json", f"bellman_{env_id}.md"]
+        assert (ROOT / args[2] / drawn[-1]).exists() == (tmp_path / drawn[-1]).exists(), drawn[-1]
+        for name in filter(lambda name: (tmp_path / name).exists(), drawn):
             committed = (ROOT / args[2] / name).read_text()
             assert committed == (tmp_path / name).read_text(), f"{name}: redraw with the README's command"
         assert (tmp_path / f"table1_{env_id}.md").read_text().strip() in readme, env_id
@@ -287,6 +290,41 @@ def check_success_figure(fig, by_label: dict[str, list[dict]]) -> None:
 
 
 # ================================================================================================ records
+def loss_run(label: str, seed: int, losses: list[list[float]], clip: list[float] | None, evals: list[float]) -> Run:
+    """Two tasks (reach, push) whose critic losses ``(points, 2)`` are logged every 10k env steps (5k per task),
+    evaluated at ``evals`` env steps (all tasks)."""
+    steps = np.arange(1, len(losses) + 1) * 10_000.0
+    values = np.asarray(losses, dtype=float)
+    scalars = {f"train/critic_loss/{i:02d}_{name}": (steps, values[:, i]) for i, name in enumerate(["reach", "push"])}
+    if clip is not None:
+        scalars["train/q_loss_clip_fraction"] = (steps[: len(clip)], np.asarray(clip))
+    curve = {"timesteps": np.asarray(evals), "success_rate": np.zeros((len(evals), 2))}
+    info = {"label": label, "seed": seed, "task_names": ["reach-v3", "push-v3"]}
+    return Run(Path(label), info, evaluations=curve, scalars=scalars)
+
+
+def test_bellman_table_names_the_task_with_the_largest_mean_critic_loss_between_evaluations():
+    """Per window between evaluations (per task: (0, 20k], (20k, 40k]) the task whose mean critic loss over the
+    window's points is the largest, and that mean; the peak over the run; the clip's mean and largest share (%)."""
+    ours = [[1, 2], [2, 2], [3, 2], [4, 2], [10, 1], [10, 1], [10, 1], [10, 51]]
+    short = [[1, 3], [1, 3], [1, 3], [1, 3]]  # logged up to 20k per task only
+    groups = {
+        "Ours": [loss_run("Ours", 0, ours, [0.001, 0.001, 0.004], [0.0, 40_000.0, 80_000.0])],
+        "SAC-MT": [
+            loss_run("SAC-MT", 1, short, None, [40_000.0]),
+            Run(Path("x"), {"label": "SAC-MT", "seed": 2, "task_names": ["reach-v3", "push-v3"]}),
+        ],
+    }
+    note, table = bellman_table("MT2", groups).split("\n\n")
+    assert note.startswith("MT2: the soft Bellman error")
+    assert table.splitlines()[0] == "| Algorithm | Seed | 0-20k | 20k-40k | Peak | Clip dropped (mean / max, %) |"
+    assert table.splitlines()[2:] == [
+        "| SAC-MT | 1 | 3 push | - | 3 push | - |",
+        "| Ours | 0 | 2.5 reach | 13.5 push | 51 push | 0.20 / 0.40 |",
+    ]
+    assert bellman_table("MT2", {"SAC-MT": groups["SAC-MT"][1:]}) is None
+
+
 def test_a_record_of_a_newer_format_is_refused(tmp_path):
     record = json.loads(next(SAMPLES.rglob("*.json")).read_text())
     (tmp_path / "r.json").write_text(json.dumps({**record, "record_version": records.RECORD_VERSION + 1}))

@@ -179,9 +179,12 @@ def test_plot_synthetic_runs_writes_every_figure_and_table(tmp_path, capsys):
         "nt_matrix_MT10_Ours-VAE.png",
         "table1_MT10.md",
         "runs_MT10.md",
+        "bellman_MT10.md",
         "results_MT10.json",
     }
     assert {p.name for p in written} == expected
+    bellman_rows = [line for line in (out / "bellman_MT10.md").read_text().splitlines() if line.startswith("| ")]
+    assert [row.split("|")[1].strip() for row in bellman_rows[1:]] == ["SAC-MT"] * 2 + ["Ours"] * 2 + ["Ours-VAE"]
     for path in written:
         assert path.stat().st_size > (1000 if path.suffix == ".png" else 100), path
     table = (out / "table1_MT10.md").read_text()

@@ -24,11 +24,14 @@ Written to ``--out``, per benchmark ``<b>``:
   one line on stderr (``--include-unfinished`` counts its last evaluation);
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
   its package commit;
+- ``bellman_<b>.md``, for runs that log the per-task critic loss: every run, seed by seed: between consecutive
+  evaluations the task with the largest soft Bellman error and its mean, the peak, and the share of samples the
+  clip of Eq. 16 dropped (:mod:`sb3_mtte.experiments.bellman_table`);
 - ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one entry per run with a final evaluation;
-- from run folders only (they need the logs that records leave out): the figures of
-  :mod:`sb3_mtte.experiments.figures` (Bellman error, train frequency, mu and w, transfer-matrix heatmaps at
-  ``--matrix-times``, each titled with the time of the recomputation it draws, the nearest; a time past the log is
-  skipped with a line).
+- the figures of :mod:`sb3_mtte.experiments.figures`: Bellman error (from run folders and from records that keep the
+  training losses) and, from run folders only (they need the logs that records leave out), train frequency, mu and
+  w, and transfer-matrix heatmaps at ``--matrix-times``, each titled with the time of the recomputation it draws,
+  the nearest; a time past the log is skipped with a line.
 
 Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
 episodes (``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
@@ -45,6 +48,7 @@ from pathlib import Path
 
 from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments import command_prog
+from sb3_mtte.experiments.bellman_table import bellman_table
 from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.records import load_runs
 from sb3_mtte.experiments.results import benchmark_statistics, results_records, runs_table, table1
@@ -87,6 +91,9 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             plot_success(bench, bands, opts, written)
             plot_per_task(bench, bands, next(iter(by_label.values()))[0].task_names, opts, written)
             plot_bellman(bench, by_label, opts, written)
+            bellman = bellman_table(bench, by_label)
+            if bellman is not None:
+                _write_table(f"bellman_{safe_name(bench)}.md", bellman, opts, written, echo=False)
             plot_negative_transfer(bench, by_label, opts, written)
             counted = {label: [r for r in group if id(r) not in left_out] for label, group in by_label.items()}
             counted = {label: group for label, group in counted.items() if group}
