@@ -290,29 +290,34 @@ def check_success_figure(fig, by_label: dict[str, list[dict]]) -> None:
 
 
 # ================================================================================================ records
-def loss_run(label: str, seed: int, losses: list[list[float]], clip: list[float] | None, evals: list[float]) -> Run:
+def loss_run(label: str, seed: int, losses: list[list[float]], clip: list[float] | None, evals: list | None) -> Run:
     """Two tasks (reach, push) whose critic losses ``(points, 2)`` are logged every 10k env steps (5k per task),
-    evaluated at ``evals`` env steps (all tasks)."""
+    evaluated at ``evals`` env steps (all tasks; None: no evaluation, only training episodes' success)."""
     steps = np.arange(1, len(losses) + 1) * 10_000.0
     values = np.asarray(losses, dtype=float)
     scalars = {f"train/critic_loss/{i:02d}_{name}": (steps, values[:, i]) for i, name in enumerate(["reach", "push"])}
+    scalars["rollout/success_rate"] = (steps, np.zeros(len(steps)))
     if clip is not None:
         scalars["train/q_loss_clip_fraction"] = (steps[: len(clip)], np.asarray(clip))
-    curve = {"timesteps": np.asarray(evals), "success_rate": np.zeros((len(evals), 2))}
+    curve = None if evals is None else {"timesteps": np.asarray(evals), "success_rate": np.zeros((len(evals), 2))}
     info = {"label": label, "seed": seed, "task_names": ["reach-v3", "push-v3"]}
     return Run(Path(label), info, evaluations=curve, scalars=scalars)
 
 
 def test_bellman_table_names_the_task_with_the_largest_mean_critic_loss_between_evaluations():
-    """Per window between evaluations (per task: (0, 20k], (20k, 40k]) the task whose mean critic loss over the
-    window's points is the largest, and that mean; the peak over the run; the clip's mean and largest share (%)."""
+    """Per window between evaluations (per task: (0, 20k], (20k, 40k], those of the run evaluated furthest, not of
+    the one evaluated most often) the task whose mean critic loss over the window's points is the largest, and that
+    mean; the peak over the run; the clip's mean and largest share (%). A point with a missing loss is left out; a
+    run without evaluations or critic losses has no row."""
     ours = [[1, 2], [2, 2], [3, 2], [4, 2], [10, 1], [10, 1], [10, 1], [10, 51]]
-    short = [[1, 3], [1, 3], [1, 3], [1, 3]]  # logged up to 20k per task only
+    short = [[1, 3], [np.nan, 90], [1, 3], [1, 3]]  # logged up to 20k per task only, one reach loss missing
     groups = {
         "Ours": [loss_run("Ours", 0, ours, [0.001, 0.001, 0.004], [0.0, 40_000.0, 80_000.0])],
         "SAC-MT": [
             loss_run("SAC-MT", 1, short, None, [40_000.0]),
-            Run(Path("x"), {"label": "SAC-MT", "seed": 2, "task_names": ["reach-v3", "push-v3"]}),
+            loss_run("SAC-MT", 2, short, None, None),
+            loss_run("SAC-MT", 4, [[2, 1]] * 4, None, [20_000.0, 40_000.0, 60_000.0]),
+            Run(Path("x"), {"label": "SAC-MT", "seed": 3, "task_names": ["reach-v3", "push-v3"]}),
         ],
     }
     note, table = bellman_table("MT2", groups).split("\n\n")
@@ -320,9 +325,10 @@ def test_bellman_table_names_the_task_with_the_largest_mean_critic_loss_between_
     assert table.splitlines()[0] == "| Algorithm | Seed | 0-20k | 20k-40k | Peak | Clip dropped (mean / max, %) |"
     assert table.splitlines()[2:] == [
         "| SAC-MT | 1 | 3 push | - | 3 push | - |",
+        "| SAC-MT | 4 | 2 reach | - | 2 reach | - |",
         "| Ours | 0 | 2.5 reach | 13.5 push | 51 push | 0.20 / 0.40 |",
     ]
-    assert bellman_table("MT2", {"SAC-MT": groups["SAC-MT"][1:]}) is None
+    assert bellman_table("MT2", {"SAC-MT": groups["SAC-MT"][3:]}) is None
 
 
 def test_a_record_of_a_newer_format_is_refused(tmp_path):

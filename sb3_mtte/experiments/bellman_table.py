@@ -8,25 +8,45 @@ from collections.abc import Sequence
 import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import Run, label_order, success_curve, task_scalar
+from sb3_mtte.experiments.runs import Run, label_order, task_scalar
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 BELLMAN_NOTE = (
     "{bench}: the soft Bellman error (critic loss J^Q) run by run. Each window runs from one periodic evaluation to "
-    "the next (env steps per task); its cell names the task whose critic loss, averaged over the window's logged "
-    "points, is the largest, and that average. Peak: the largest logged value and its task. Clip dropped: the share "
-    "of samples the clip of Eq. 16 dropped per logging window, mean and largest over the run (- without the clip). "
-    "A record keeps up to 200 of its run's logged points."
+    "the next (the first from the start; env steps per task, on the evaluations of the run evaluated furthest); its "
+    "cell names the task whose critic loss, averaged over the window's logged points, is the largest, and that "
+    "average. Peak: the largest logged value over the whole run and its task. Clip dropped: the share of samples the "
+    "clip of Eq. 16 dropped per logging window, mean and largest over the run (- without the clip). A record keeps up "
+    "to 200 of its run's logged points; a point where some task's loss is missing or not finite is left out."
 )
 
 
 def critic_losses(run: Run) -> tuple[np.ndarray, np.ndarray] | None:
-    """The run's logged env steps and its per-task critic loss ``(points, tasks)``; None unless every task has one
-    on the same steps."""
+    """The run's env steps where every task logged a finite critic loss, and those losses ``(points, tasks)``; None
+    without such a step."""
     series = [task_scalar(run, CRITIC_LOSS_KEY, i) for i in range(run.n_tasks)]
-    if not series or any(s is None or not np.array_equal(s[0], series[0][0]) for s in series):
+    if not series or any(s is None for s in series):
         return None
-    return np.asarray(series[0][0], dtype=float), np.stack([values for _, values in series], axis=1)
+    by_step = [
+        dict(zip(np.asarray(steps, dtype=float), np.asarray(values, dtype=float), strict=True))
+        for steps, values in series
+    ]
+    common = sorted(set.intersection(*({t for t, v in task.items() if np.isfinite(v)} for task in by_step)))
+    if not common:
+        return None
+    return np.asarray(common), np.array([[task[t] for task in by_step] for t in common])
+
+
+def evaluation_steps(run: Run) -> np.ndarray | None:
+    """Env steps per task of the run's periodic evaluations (``evaluations.npz``, else the ``eval/`` scalars)."""
+    if run.evaluations is not None and len(run.evaluations.get("timesteps", [])):
+        steps = np.asarray(run.evaluations["timesteps"], dtype=float)
+    elif run.scalar("eval/success_rate") is not None:
+        steps = np.asarray(run.scalar("eval/success_rate")[0], dtype=float)
+    else:
+        return None
+    steps = steps[steps > 0] / run.n_tasks
+    return steps if len(steps) else None
 
 
 def window_peaks(steps: np.ndarray, losses: np.ndarray, edges: Sequence[float]) -> list[tuple[float, int] | None]:
@@ -66,18 +86,17 @@ def _row(run: Run, steps: np.ndarray, losses: np.ndarray, edges: np.ndarray) -> 
 
 def bellman_table(bench: str, groups: dict[str, list[Run]]) -> str | None:
     """Markdown table of a benchmark's runs with per-task critic losses (None without any): per window between
-    evaluations the largest task mean, the peak, and the clip's share; windows on the longest evaluation grid."""
+    evaluations the largest task mean, the peak, and the clip's share; the windows are those of the run evaluated
+    furthest."""
     rows = []
     for label in label_order(list(groups)):
         for run in sorted(groups[label], key=lambda r: -1 if r.seed is None else r.seed):
-            losses = critic_losses(run)
-            curve = None if losses is None else success_curve(run)
-            if losses is not None and curve is not None:
-                edges = np.asarray(curve[0], dtype=float) / run.n_tasks
-                rows.append((run, *losses, edges[edges > 0]))
+            losses, evaluations = critic_losses(run), evaluation_steps(run)
+            if losses is not None and evaluations is not None:
+                rows.append((run, *losses, evaluations))
     if not rows:
         return None
-    edges = max((row[3] for row in rows), key=len)
+    edges = max((row[3] for row in rows), key=lambda grid: (grid[-1], len(grid)))
     windows = [f"{_thousands(low)}-{_thousands(high)}" for low, high in zip([0.0, *edges[:-1]], edges, strict=True)]
     headers = ["Algorithm", "Seed", *windows, "Peak", "Clip dropped (mean / max, %)"]
     lines = ["| " + " | ".join(headers) + " |", "|:--|--:|" + "--:|" * (len(headers) - 2)]
