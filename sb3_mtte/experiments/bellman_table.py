@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import Run, label_order, task_scalar
+from sb3_mtte.experiments.runs import Run, table_order, task_scalar
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 BELLMAN_NOTE = (
@@ -89,11 +89,10 @@ def bellman_table(bench: str, groups: dict[str, list[Run]]) -> str | None:
     evaluations the largest task mean, the peak, and the clip's share; the windows are those of the run evaluated
     furthest."""
     rows = []
-    for label in label_order(list(groups)):
-        for run in sorted(groups[label], key=lambda r: -1 if r.seed is None else r.seed):
-            losses, evaluations = critic_losses(run), evaluation_steps(run)
-            if losses is not None and evaluations is not None:
-                rows.append((run, *losses, evaluations))
+    for run in table_order(groups):
+        losses, evaluations = critic_losses(run), evaluation_steps(run)
+        if losses is not None and evaluations is not None:
+            rows.append((run, *losses, evaluations))
     if not rows:
         return None
     edges = max((row[3] for row in rows), key=lambda grid: (grid[-1], len(grid)))

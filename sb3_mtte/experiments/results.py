@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import Run, label_order, success_curve
+from sb3_mtte.experiments.runs import Run, label_order, success_curve, table_order
 from sb3_mtte.experiments.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
@@ -187,7 +187,6 @@ def runs_table(bench: str, groups: dict[str, list[Run]]) -> str:
     the tasks above 0 at the end, and the package commit."""
     headers = ["Algorithm", "Seed", "Final (%)", "Last in training (%)", "Tasks above 0 at the end (%)", "Commit"]
     lines = ["| " + " | ".join(headers) + " |", "|:--|--:|--:|--:|:--|:--|"]
-    for label in label_order(list(groups)):
-        for run in sorted(groups[label], key=lambda r: -1 if r.seed is None else r.seed):
-            lines.append("| " + " | ".join(run_row(run)) + " |")
+    for run in table_order(groups):
+        lines.append("| " + " | ".join(run_row(run)) + " |")
     return RUNS_NOTE.format(bench=bench) + "\n\n" + "\n".join(lines) + "\n"

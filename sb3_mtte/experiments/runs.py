@@ -175,6 +175,15 @@ def label_order(labels: Sequence[str]) -> list[str]:
     return [label for label in known if label in labels] + sorted(label for label in labels if label not in known)
 
 
+def table_order(groups: dict[str, list[Run]]) -> list[Run]:
+    """The runs of ``groups`` in label order (:func:`label_order`), each label's by seed (unknown seed first)."""
+    return [
+        run
+        for label in label_order(list(groups))
+        for run in sorted(groups[label], key=lambda r: -1 if r.seed is None else r.seed)
+    ]
+
+
 def success_curve(run: Run, task: int | None = None) -> Series | None:
     """Success over time (mean over tasks, or of task ``task``): evaluations, else eval/ scalars, else rollout/."""
     if run.evaluations is not None and len(run.evaluations.get("timesteps", [])):
