@@ -140,6 +140,20 @@ def test_entropy_loss_of_task_i_moves_only_beta_i():
     assert moved.tolist() == [False, False, True, False]
 
 
+def test_the_training_steps_beta_update_is_eq_3_per_task():
+    """With SGD at lr 1, log beta_i moves by mean_l (log pi_il + H-bar) (minus the gradient of Eq. 3 in log space)."""
+    model = small_model()
+    model.ent_coef_optimizer = th.optim.SGD([model.log_ent_coef], lr=1.0)
+    before = model.log_ent_coef.detach().clone()
+    log_prob = th.tensor([[1.0, -3.0, 0.5], [-2.0, -2.0, -2.0], [0.0, 4.0, -1.0], [-6.0, 0.0, 3.0]])
+    used, _ = model._entropy_step(log_prob)
+    target = model.target_entropy
+    for i in range(4):
+        expected_step = sum(value + target for value in log_prob[i].tolist()) / 3
+        assert model.log_ent_coef[i].item() - before[i].item() == pytest.approx(expected_step, abs=1e-6), i
+    assert th.allclose(used, before.exp())  # the losses of this update use beta before the step
+
+
 def test_training_updates_every_beta_separately():
     model = small_model()
     model.learn(400)
@@ -197,6 +211,16 @@ def test_resume_gives_the_same_next_update_as_an_uninterrupted_run(kwargs, tmp_p
     resumed.train(gradient_steps=2, batch_size=16)
     for key, value in expected.items():
         assert th.equal(value, resumed.policy.state_dict()[key]), key
+
+
+def test_a_model_saved_before_learning_starts_resumes_its_random_warm_up_actions(tmp_path):
+    """SB3 draws the actions before learning_starts from the action space's generator, which loading re-seeds."""
+    model = small_model(seed=3)
+    model.learn(40)  # 40 env steps, before learning_starts=100
+    model.save(tmp_path / "model")
+    continued = [model.action_space.sample() for _ in range(3)]
+    resumed = MTSAC.load(tmp_path / "model", device="cpu")
+    assert np.array_equal(np.stack(continued), np.stack([resumed.action_space.sample() for _ in range(3)]))
 
 
 def test_same_seed_same_run():

@@ -10,6 +10,7 @@ import zipfile
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.save_util import open_path
 
 
@@ -46,18 +47,22 @@ def check_checkpoint(path, algorithm_name: str, n_tasks: int | None) -> None:
         raise ValueError(f"This checkpoint was trained on {saved_tasks} tasks; the env given has {n_tasks} tasks.")
 
 
-def capture_rng_state() -> dict:
-    """The global RNG states (python, numpy, torch CPU and CUDA) that training draws from."""
+def capture_rng_state(action_space: spaces.Space) -> dict:
+    """The RNG states that training draws from: python, numpy, torch CPU and CUDA, and ``action_space``'s own
+    generator, from which SB3 draws the random actions before ``learning_starts``."""
     state = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": th.get_rng_state()}
     if th.cuda.is_available():
         state["cuda"] = th.cuda.get_rng_state_all()
+    state["action_space"] = action_space.np_random.bit_generator.state
     return state
 
 
-def restore_rng_state(state: dict) -> None:
-    """Restore what :func:`capture_rng_state` captured."""
+def restore_rng_state(state: dict, action_space: spaces.Space) -> None:
+    """Restore what :func:`capture_rng_state` captured (loading re-seeds ``action_space``; this undoes it)."""
     random.setstate(state["python"])
     np.random.set_state(state["numpy"])
     th.set_rng_state(state["torch"])
     if "cuda" in state and th.cuda.is_available():
         th.cuda.set_rng_state_all(state["cuda"])
+    if "action_space" in state:
+        action_space.np_random.bit_generator.state = state["action_space"]

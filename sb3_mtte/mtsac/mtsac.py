@@ -346,9 +346,9 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         return state_dicts, ["ent_coef_tensor"]
 
     def save(self, path, exclude=None, include=None) -> None:
-        """Save the model; the global RNG states are saved with it so that a resumed run continues exactly."""
+        """Save the model; the RNG states are saved with it so that a resumed run continues exactly."""
         self.update_monitor.check()
-        self.rng_state = capture_rng_state()
+        self.rng_state = capture_rng_state(self.action_space)
         try:
             super().save(path, exclude=exclude, include=include)
         finally:
@@ -367,7 +367,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         model = super().load(path, env=env, device=device, **kwargs)
         rng_state = model.__dict__.pop("rng_state", None)
         if rng_state is not None:
-            restore_rng_state(rng_state)
+            restore_rng_state(rng_state, model.action_space)
         return model
 
     def learn(
