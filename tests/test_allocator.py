@@ -11,7 +11,8 @@ import pytest
 from sb3_mtte import allocator
 
 TRAINING_STEPS = """
-import resource, sys
+import ctypes, resource, sys
+ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: count 4 KiB faults also where THP is "always"
 if sys.argv[1] == "package":
     import sb3_mtte
 import torch as th

@@ -228,10 +228,10 @@ def test_toy_speed():
     env = make_mt_env("toy-conflict", n_tasks=4)
     env.reset()
     actions = np.random.default_rng(0).uniform(-1, 1, size=(1000, 4, 2)).astype(np.float32)
-    start = time.perf_counter()
+    start = time.process_time()  # this process's CPU time: other work on the machine does not count
     for action in actions:
         env.step(action)
-    steps_per_s = actions.shape[0] * 4 / (time.perf_counter() - start)
+    steps_per_s = actions.shape[0] * 4 / (time.process_time() - start)
     assert steps_per_s > 2000, f"{steps_per_s:.0f} env steps/s"
 
 

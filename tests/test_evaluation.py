@@ -101,7 +101,7 @@ def test_episode_counting_follows_goal_cycle():
     np.testing.assert_array_equal(starts, np.repeat(np.arange(10)[:, None], 3, axis=1))
 
 
-def test_benchmark_spec_and_seed():
+def test_benchmark_spec_and_bad_episode_count():
     first = evaluate_success(DoNothing(), "toy-conflict-3", episodes_per_task=2, seed=5)
     assert isinstance(first, SuccessResult) and first.success_rate.shape == (3,)
     with pytest.raises(ValueError):

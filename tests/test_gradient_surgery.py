@@ -350,7 +350,8 @@ def test_a_shared_entropy_coefficient_without_surgery_minimises_the_mean_over_ev
 
 
 def test_without_surgery_the_update_is_unchanged():
-    """gradient_surgery=None takes the weighted-sum step: the same parameters as a model built without the argument."""
+    """gradient_surgery=None, the default, gives the same parameters as a model built without the argument, and PCGrad
+    other ones (the weighted-sum step itself: test_mtsac.py)."""
     first = small_model().learn(800)
     second = small_model(gradient_surgery=None).learn(800)
     third = small_model(gradient_surgery="pcgrad").learn(800)

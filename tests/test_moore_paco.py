@@ -23,7 +23,9 @@ SMALL = {
 def small_model(policy: str, seed: int = 0, learning_starts: int = 100, **policy_kwargs) -> MTSAC:
     env = make_mt_env("toy-conflict", seed=seed)
     kwargs = {**SMALL[policy], **policy_kwargs}
-    return MTSAC(policy, env, learning_starts=learning_starts, batch_size=16, seed=seed, policy_kwargs=kwargs)
+    return MTSAC(
+        policy, env, learning_starts=learning_starts, batch_size=16, seed=seed, device="cpu", policy_kwargs=kwargs
+    )
 
 
 # ----------------------------------------------------------------------------------- plain-loop references

@@ -353,6 +353,7 @@ def test_every_variant_learns_the_toy_conflict_env(policy, critic_arch):
         critic_arch=critic_arch,
         policy_kwargs=kwargs,
         seed=0,
+        device="cpu",
     )
     model.learn(12_000)
     result = evaluate_success(model, make_mt_env("toy-conflict", seed=100), episodes_per_task=10)

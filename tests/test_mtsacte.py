@@ -561,22 +561,13 @@ def _assert_conflict_singled_out(mean_mu: np.ndarray, mean_weights: np.ndarray) 
     assert mean_weights[conflict] < mean_weights[:conflict].min(), mean_weights
 
 
-def test_training_singles_out_the_conflicting_task(monkeypatch):
-    """Averaged over every recomputation of the run, mu is largest and w smallest for the conflicting task (index 3),
-    which plain SAC with an encoder would not single out. Measured with the defaults (E_phi at std 0.01), mean mu of
-    tasks 0..3: [1.36, 1.44, 1.44, 1.49] for seed 0; of seeds 0..5 four single it out (0, 2, 4, 5) and two do not
-    (1: [1.45, 1.48, 1.41, 1.40], 3: [1.29, 1.29, 1.35, 1.33]); see the pooled test below.
-
-    With E_phi's mean head scaled by 50 (z_mean_init_gain, the zoo's Meta-World setting) z separates the tasks from
-    the first step and the tasks' gradients interfere less (measured before the default std of 0.01: mu of seed 0 no
-    longer singled the conflicting task out)."""
-    _assert_conflict_singled_out(*_mean_selection_on_toy(0, monkeypatch))
-
-
 @pytest.mark.slow
 def test_training_singles_out_the_conflicting_task_over_seeds(monkeypatch):
     """Over seeds 0..5 pooled (each seed's run-average, then their mean), mu is largest and w smallest for the
-    conflicting task (measured mean mu [1.40, 1.39, 1.40, 1.46])."""
+    conflicting task (measured mean mu [1.40, 1.39, 1.40, 1.46]). A single seed does not: four of the six single it
+    out (0, 2, 4, 5) and two do not (1: [1.45, 1.48, 1.41, 1.40], 3: [1.29, 1.29, 1.35, 1.33]), and another CPU's
+    kernels change a run's trajectory as another seed would. The mechanism on one batch, with margins that do not
+    depend on training: test_conflicting_task_has_largest_mu_and_smallest_weight."""
     runs = [_mean_selection_on_toy(seed, monkeypatch) for seed in range(6)]
     _assert_conflict_singled_out(np.mean([mu for mu, _ in runs], axis=0), np.mean([w for _, w in runs], axis=0))
 

@@ -562,6 +562,7 @@ def test_stochastic_predict_samples_z_from_the_encoder(toy_env, monkeypatch):
     assert not np.allclose(first, second)
     with th.no_grad():
         mean, log_std = loop_split(policy.encoder(th.as_tensor(obs)))
+    assert len(fed) == 2  # one actor pass per predict
     for z in fed:
         eps = (z - mean) / log_std.exp()
         for task in range(N_TASKS):
@@ -652,11 +653,12 @@ def test_a_step_whenever_j_rep_has_a_term(toy_env, monkeypatch, use_vae, harmful
 
 
 @pytest.mark.parametrize("estimator", ["virtual_step", "gradient_dot"])
-def test_the_encoder_learns_only_through_the_virtual_step(toy_env, monkeypatch, estimator):
+@pytest.mark.parametrize("step_size", [1e-2, 0.0])
+def test_the_encoder_learns_only_through_the_virtual_step(toy_env, monkeypatch, estimator, step_size):
     """With the actor blind to z at theta (its z-input weights zero) and no VAE term, mean_i J_i(theta, phi) does not
     depend on phi: phi can learn only because J^NT evaluates the tasks at theta^k = theta + alpha grad J_k (Eq. 11),
-    whose z-input weights are not zero. Replacing J^NT by mean_i J_i(theta, phi) leaves the encoder where it was."""
-    kwargs = small_model_kwargs(rep_gradient_steps=1, use_vae=False, nt_step_size=1e-2, nt_estimator=estimator)
+    whose z-input weights are not zero. With alpha = 0, J^NT is mean_i J_i(theta, phi) and phi's gradient is zero."""
+    kwargs = small_model_kwargs(rep_gradient_steps=1, use_vae=False, nt_step_size=step_size, nt_estimator=estimator)
     model = MTSACTE("MlpPolicy", toy_env, **kwargs)
     model.learn(200)
     with th.no_grad():
@@ -669,12 +671,13 @@ def test_the_encoder_learns_only_through_the_virtual_step(toy_env, monkeypatch, 
     )
     monkeypatch.setattr(model, "_select", lambda transfer, statistics: selection)
     captured = _capture_applied_gradients(model, monkeypatch)
-    before = {k: v.clone() for k, v in model.encoder.state_dict().items()}
     model.update_representation(16)
-    gradient_norm = th.cat([g.flatten() for g in captured["enc"].values()]).norm()
-    assert gradient_norm > 1e-6
-    moved = [name for name, value in model.encoder.state_dict().items() if not th.equal(value, before[name])]
-    assert moved
+    gradients = [g.flatten() for g in captured["enc"].values() if g is not None]
+    gradient_norm = th.cat(gradients).norm().item() if gradients else 0.0
+    if step_size > 0:
+        assert gradient_norm > 1e-6
+    else:
+        assert gradient_norm == 0.0
 
 
 def test_initial_std_of_the_embedding(toy_env):

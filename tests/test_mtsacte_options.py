@@ -84,7 +84,7 @@ def test_task_weights_follow_the_given_dtype():
     assert task_weights(mu, th.float64).dtype == th.float64
 
 
-def test_model_task_weights_in_the_model_dtype(toy_env):
+def test_model_task_weights_are_float32_like_the_actor(toy_env):
     model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
     model.learn(60 * N_TASKS)
     assert model.task_weights.dtype == th.float32

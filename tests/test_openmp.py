@@ -14,7 +14,8 @@ import os, warnings
 from sb3_mtte import MTSAC, make_mt_env
 import torch
 torch.set_num_threads(2)
-model = MTSAC("MlpPolicy", make_mt_env("toy-conflict", seed=0), learning_starts=8, policy_kwargs=dict(net_arch=[8]))
+env = make_mt_env("toy-conflict", seed=0)
+model = MTSAC("MlpPolicy", env, learning_starts=8, policy_kwargs=dict(net_arch=[8]), device="cpu")
 with warnings.catch_warnings(record=True) as caught:
     warnings.simplefilter("always")
     model.learn(16)

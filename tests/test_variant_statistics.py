@@ -4,6 +4,7 @@ thread); the check holds under another instruction set and fails under a small r
 
 from __future__ import annotations
 
+import functools
 import inspect
 import json
 import os
@@ -21,22 +22,31 @@ HERE = Path(__file__).resolve().parent
 LEARNING_RATE = inspect.signature(MTSAC.__init__).parameters["learning_rate"].default
 
 
+@functools.cache
+def native_statistics(case: str) -> dict:
+    """The case's statistics on this CPU's own kernels (computed once per test process)."""
+    return case_statistics(case)
+
+
 @pytest.mark.parametrize("case", list(CASES))
 def test_parameters_match_the_stored_statistics(case):
-    assert distance(case_statistics(case), stored_statistics()[case]) <= tolerance(case)
+    assert distance(native_statistics(case), stored_statistics()[case]) <= tolerance(case)
 
 
 def test_another_instruction_set_stays_within_tolerance():
     """ATen's kernels without vectorisation (``ATEN_CPU_CAPABILITY=default``) change the last bits of every update
-    of these cases on an AVX2 or AVX512 CPU; the parameters stay within tolerance."""
+    of these cases on an AVX2 or AVX512 CPU (measured on AVX512: 5e-7 for mt, 2e-6 for mtsacte, against this CPU's
+    own kernels); the parameters stay within tolerance of the stored ones."""
     cases = ["mt", "softmod", "paco_collapse", "mtsacte"]
     env = {**os.environ, "ATEN_CPU_CAPABILITY": "default"}
     script = str(HERE / "variant_statistics.py")
     out = subprocess.run([sys.executable, script, *cases], env=env, capture_output=True, text=True, check=True)
-    distances = json.loads(out.stdout.strip().splitlines()[-1])
-    assert sorted(distances) == sorted(cases)
-    for case, value in distances.items():
-        assert value <= tolerance(case), (case, value)
+    statistics = json.loads(out.stdout.strip().splitlines()[-1])
+    assert sorted(statistics) == sorted(cases)
+    for case, stats in statistics.items():
+        assert distance(stats, stored_statistics()[case]) <= tolerance(case), case
+    if th.backends.cpu.get_cpu_capability() != "DEFAULT":  # else the variable changes nothing to show
+        assert max(distance(stats, native_statistics(case)) for case, stats in statistics.items()) > 0
 
 
 @pytest.mark.parametrize("case", ["mt", "softmod", "moore", "mtsacte"])

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 import torch as th
 import yaml
-from conftest import ENV, TINY, tiny_train
+from conftest import ENV, QUIET_CPU, TINY, tiny_train
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.env_util import make_vec_env
 from stable_baselines3.common.save_util import load_from_pkl
@@ -215,7 +215,7 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
         assert th.equal(value, ckpt_b.policy.state_dict()[key]), key
 
     # the kill came from a hyperparameter, which the resumed run would read back from config.yml: drop it
-    resume = ["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *TINY[:3]]
+    resume = ["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *QUIET_CPU]
     main([*resume, "-params", "callback:None"])
     model_a, model_b = load_model(run_a / f"{ENV}.zip"), load_model(run_b / f"{ENV}.zip")
     assert model_a.num_timesteps == model_b.num_timesteps == 800
@@ -246,7 +246,7 @@ def test_resume_after_kill_matches_uninterrupted_run(tmp_path):
 
 def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
     run = tiny_train(tmp_path, "mtsac_mt", "--save-freq", "200", "--save-replay-buffer", steps=200)
-    main(["train", "--resume", str(run), "-n", "400", *TINY[:3]])  # algo and env from the run folder
+    main(["train", "--resume", str(run), "-n", "400", *QUIET_CPU])  # algo and env from the run folder
     assert read_run_info(run)["resumes"][0]["timesteps"] == 200  # from the final model and its buffer
     assert load_model(run / f"{ENV}.zip").num_timesteps == 400
     with np.load(run / "evaluations.npz") as data:
@@ -509,7 +509,7 @@ def test_a_run_stepped_in_subprocesses_resumes_to_the_numbers_of_one_stepped_in_
             f"callback:{{'{killer}': dict(timesteps=300)}}",
             steps=400,
         )
-    resume = ["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *TINY[:3]]
+    resume = ["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path / "b"), "--resume", *QUIET_CPU]
     main([*resume, "-params", "callback:None"])
     run = tmp_path / "b" / "mtsac_mt" / f"{ENV}_1"
     assert "subproc" in (run / ENV / "args.yml").read_text()  # the resumed run kept its processes
