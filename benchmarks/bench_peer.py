@@ -1,8 +1,10 @@
 """Side by side with the JAX reference (rainx0r/metaworld-algorithms) on the same CPU, in its MT10 multi-head SAC
 configuration: 3 x 400 networks, batch 128 per task, one update per vector step, 2 threads.
 
-    PEER_PY=$(bash ../shared/peer-bench/setup.sh)
-    python benchmarks/bench_peer.py --peer-python "$PEER_PY" --peer-script ../shared/peer-bench/peer_bench.py
+    python benchmarks/bench_peer.py --peer-python PATH/TO/venv/python --peer-script PATH/TO/peer_bench.py
+
+(``--peer-python``: a virtual environment with the reference installed; ``--peer-script``: a script that times the
+reference's jitted update and its training loop and prints them as JSON, as ``docs/performance.md`` describes.)
 
 Each round runs the reference's own script (its jitted update on synthetic batches, then its training loop on real
 MT10) and then this package the same way, each in a fresh process, so that drifts of the machine hit both alike;

@@ -8,7 +8,7 @@ sees), from E_phi's mean, and E_phi's standard deviation at every J^rep update (
 ``--probe-every`` vector steps), the wall time per vector step, and, with ``--eval-episodes``, the final
 per-task success (deterministic actions, one goal variation per episode). Writes one JSON file per run.
 
-    python benchmarks/embedding_study.py --setting paper_defaults --seed 0 --per-task-steps 6000 --out-dir study
+    python benchmarks/embedding_study.py --setting chosen_defaults --seed 0 --per-task-steps 6000 --out-dir study
 """
 
 from __future__ import annotations

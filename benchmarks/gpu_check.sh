@@ -3,7 +3,7 @@
 # (the CUDA graph gives the eager parameters for every variant it holds, the device and pinned replay storages give
 # the host's batches), then benchmarks/bench_gpu.py (eager against fast: updates/s of every variant at N = 10, 20, 50;
 # MT10 and MT50 end to end for MTSAC and MTSACTE; the hours of the paper's budget). Writes ${OUT:-gpu_check}/:
-# tests.log and gpu_check.json (the file docs/results/gpu_check.json is a copy of).
+# tests.log and gpu_check.json (to be copied to docs/results/gpu_check.json).
 #
 # The machine needs PyTorch with CUDA and the package's other runtime dependencies. Wheels found in .whl/ (ignored by
 # git; 46 MB for Python 3.12) are installed into /tmp/site first, for a machine without a package registry.
