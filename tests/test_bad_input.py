@@ -105,6 +105,22 @@ def test_a_gymnasium_vector_env_is_refused_naming_make_mt_env(toy_env, name):
     vector_env.close()
 
 
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+@pytest.mark.parametrize("buffer_size", [1e6, "1e6", 0])
+def test_buffer_size_must_be_a_positive_int(toy_env, name, buffer_size):
+    cls, kwargs = ALGORITHMS[name]
+    expected = r"^buffer_size \(transitions over all tasks\) must be a positive int such as 1_000_000 or int\(1e6\)"
+    with pytest.raises(ValueError, match=expected):
+        cls("MlpPolicy", toy_env, **{**kwargs, "buffer_size": buffer_size})
+
+
+@pytest.mark.parametrize("name", sorted(ALGORITHMS))
+def test_an_env_name_is_refused_naming_make_mt_env(name):
+    cls, kwargs = ALGORITHMS[name]
+    with pytest.raises(ValueError, match=r"^env 'MT10' is a name, not a multi-task env: pass make_mt_env\('MT10'\)"):
+        cls("MlpPolicy", "MT10", **kwargs)
+
+
 # ============================================================================================= train's flags
 @pytest.mark.parametrize("steps", ["-100", "0"])
 def test_train_refuses_a_budget_of_no_env_step(tmp_path, steps):
@@ -142,6 +158,7 @@ def test_train_takes_the_package_algorithms_only(tmp_path, flags, expected):
         ),
         ("mtsacte", "seed:3", r"^seed \(in -params\) is not a hyperparameter: set it with the flag --seed\.$"),
         ("mtsacte", "batch_size:abc", r"^-params batch_size:abc: name 'abc' is not defined; each value is Python"),
+        ("mtsac_mt", "buffer_size:1e6", r"^mtsac_mt on toy-conflict: buffer_size \(transitions over all tasks\) must"),
     ],
 )
 def test_train_hyperparameter_mistakes_end_with_one_line(tmp_path, algo, params, expected):
@@ -160,6 +177,18 @@ def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, mo
     monkeypatch.setattr(manager.ExperimentManager, "setup_experiment", broken_setup)
     with pytest.raises(ValueError, match="cannot reshape"):
         main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-freq", "-1", *TINY])
+
+
+@pytest.mark.parametrize("episodes", ["0", "-2"])
+def test_train_refuses_evaluations_of_no_episode_before_it_starts(tmp_path, episodes):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-episodes", episodes, *TINY])
+    message = str(exit_info.value.code)
+    assert message == (
+        f"mtsacte on toy-conflict: --eval-episodes {episodes}: give at least 1 episode per task, or --eval-freq -1 to "
+        "turn the evaluation off."
+    )
+    assert not list(tmp_path.rglob("*.zip"))
 
 
 def test_train_names_the_nearest_key_of_a_misspelled_key_in_a_conf_file(tmp_path):

@@ -191,6 +191,7 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
         records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     message = capsys.readouterr().err
     assert message.count("\n") == 1 and "python -m sb3_mtte.evaluate <run folder>" in message
+    (tmp_path / "nothing").mkdir()
     with pytest.raises(SystemExit) as exit_info:
         plot.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "figures")])
     assert exit_info.value.code == 2

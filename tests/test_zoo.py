@@ -339,6 +339,18 @@ def test_every_record_video_option_is_described():
     assert undescribed == []
 
 
+def test_record_video_names_a_bad_env_kwarg_and_an_output_that_is_a_file(trained_run, tmp_path):
+    args = ["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", str(trained_run.parent.parent)]
+    with pytest.raises(SystemExit) as exit_info:
+        main([*args, "--env-kwargs", "goal_radius:far", "-o", str(tmp_path)])
+    assert str(exit_info.value.code).startswith("--env-kwargs goal_radius:far: name 'far' is not defined; each value")
+    (tmp_path / "videos").write_text("")
+    with pytest.raises(SystemExit) as exit_info:
+        main([*args, "-o", str(tmp_path / "videos")])
+    assert exit_info.value.code == f"-o {tmp_path / 'videos'} is a file: give a folder."
+    assert not list(tmp_path.glob("*.mp4"))
+
+
 def test_record_video_one_file_per_task(trained_run, tmp_path):
     folder = str(trained_run.parent.parent)
     written = main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "-o", str(tmp_path), "--tile"])

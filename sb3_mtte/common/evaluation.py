@@ -176,6 +176,11 @@ class MultiTaskEvalCallback(BaseCallback):
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose=verbose)
+        if isinstance(episodes_per_task, bool) or not isinstance(episodes_per_task, int) or episodes_per_task < 1:
+            raise ValueError(
+                f"episodes_per_task must be a positive int, got {episodes_per_task!r}; to evaluate less often, raise "
+                "eval_freq (--eval-freq -1 turns the zoo's evaluation off)."
+            )
         if not isinstance(eval_env, VecEnv):
             from sb3_mtte.envs import make_mt_env
 
@@ -213,13 +218,21 @@ class MultiTaskEvalCallback(BaseCallback):
         if self.verbose >= 1:
             print(f"Eval num_timesteps={self.num_timesteps}, mean success rate={result.mean:.3f}")
         if self.log_path is not None:
-            np.savez(
-                os.path.join(self.log_path, "evaluations.npz"),
-                timesteps=np.asarray(self.evaluations_timesteps),
-                success_rate=np.stack(self.evaluations_success),
-                task_names=np.asarray(self.task_names),
-            )
+            self.save_evaluations()
         self.logger.record("time/total_timesteps", self.num_timesteps, exclude="tensorboard")
         record_train_stats(self.model)
         self.logger.dump(self.num_timesteps)
         return result
+
+    def save_evaluations(self) -> None:
+        """Write every evaluation so far to ``<log_path>/evaluations.npz``, replacing the file in one step (a run
+        killed while writing leaves the previous file whole)."""
+        path = os.path.join(self.log_path, "evaluations.npz")  # type: ignore[arg-type]
+        tmp = os.path.join(self.log_path, ".tmp_evaluations.npz")  # type: ignore[arg-type]
+        np.savez(
+            tmp,
+            timesteps=np.asarray(self.evaluations_timesteps),
+            success_rate=np.stack(self.evaluations_success),
+            task_names=np.asarray(self.task_names),
+        )
+        os.replace(tmp, path)

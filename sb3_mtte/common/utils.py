@@ -101,10 +101,13 @@ def check_one_hot(obs: np.ndarray, n_tasks: int) -> None:
 
 
 def check_not_gymnasium_vector_env(env: Any) -> None:
-    """Refuse a gymnasium VectorEnv, which SB3 takes for an old OpenAI Gym env.
+    """Refuse a gymnasium VectorEnv, which SB3 takes for an old OpenAI Gym env, and an env id, which SB3 would make
+    into a single-task env.
 
     :raises ValueError: naming :func:`~sb3_mtte.make_mt_env` instead.
     """
+    if isinstance(env, str):
+        raise ValueError(f"env {env!r} is a name, not a multi-task env: pass make_mt_env({env!r}) instead.")
     if isinstance(env, gym.vector.VectorEnv):
         raise ValueError(
             f"{type(env).__name__} is a gymnasium VectorEnv, which SB3 does not take: {MAKE_ENV_FIX}, an SB3 VecEnv "
@@ -112,13 +115,20 @@ def check_not_gymnasium_vector_env(env: Any) -> None:
         )
 
 
+def check_positive_int(name: str, value: Any, example: str) -> None:
+    """:raises ValueError: unless ``value`` is a positive int; ``name`` says what it counts, ``example`` a value."""
+    if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:
+        raise ValueError(f"{name} must be a positive int such as {example}, got {value!r}.")
+
+
 def check_batch_size(batch_size: Any) -> None:
     """:raises ValueError: unless ``batch_size`` (L, transitions per task in a mini-batch) is a positive int."""
-    if isinstance(batch_size, bool) or not isinstance(batch_size, Integral) or batch_size < 1:
-        raise ValueError(
-            f"batch_size (L, transitions per task in every mini-batch) must be a positive int such as 128, "
-            f"got {batch_size!r}."
-        )
+    check_positive_int("batch_size (L, transitions per task in every mini-batch)", batch_size, "128")
+
+
+def check_buffer_size(buffer_size: Any) -> None:
+    """:raises ValueError: unless ``buffer_size`` (transitions over all tasks) is a positive int (not ``1e6``)."""
+    check_positive_int("buffer_size (transitions over all tasks)", buffer_size, "1_000_000 or int(1e6)")
 
 
 def check_learning_rate(learning_rate: Any) -> None:

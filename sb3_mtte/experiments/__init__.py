@@ -25,3 +25,15 @@ def command_prog(command: str, module: str) -> str:
     """How the user called ``command``: ``sb3-mtte <command>`` from the console script, else
     ``python -m <module>`` (for usage lines and errors)."""
     return f"sb3-mtte {command}" if Path(sys.argv[0]).name == "sb3-mtte" else f"python -m {module}"
+
+
+def output_folder_error(flag: str, path: str | Path) -> str | None:
+    """Why ``path`` cannot be the output folder of ``flag`` (an existing file), or None."""
+    return f"{flag} {path} is a file: give a folder." if Path(path).is_file() else None
+
+
+def output_file_error(flag: str, path: str | Path) -> str | None:
+    """Why ``path`` cannot be the output file of ``flag`` (an existing folder, or a name ending in a slash), or None."""
+    if Path(path).is_dir() or str(path).endswith(("/", "\\")):
+        return f"{flag} {path} is a folder: give a file path (e.g. {Path(path) / 'success.json'})."
+    return None

@@ -197,12 +197,7 @@ class ZooEvalCallback(MultiTaskEvalCallback):
             self.evaluations_success = list(np.asarray(data["success_rate"])[keep])
         if self.evaluations_success:
             self.best_mean_success = max(float(np.mean(s)) for s in self.evaluations_success)
-            np.savez(
-                path,
-                timesteps=np.asarray(self.evaluations_timesteps),
-                success_rate=np.stack(self.evaluations_success),
-                task_names=np.asarray(self.task_names),
-            )
+            self.save_evaluations()
         else:
             path.unlink()
 

@@ -34,7 +34,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
-from sb3_mtte.experiments import command_prog, run_info
+from sb3_mtte.experiments import command_prog, output_file_error, run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 
@@ -222,6 +222,9 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         help="evaluate on --env although the model was trained on another benchmark (default: refused)",
     )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
+    out_error = None if args.out is None else output_file_error("--out", args.out)
+    if out_error:
+        parser.exit(2, f"{parser.prog}: error: {out_error}\n")
     try:
         return evaluate_model(
             args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic, args.other_benchmark

@@ -193,6 +193,11 @@ class MultiTaskExperimentManager(ExperimentManager):
         if self.show_progress:
             self.callbacks.append(ProgressBarCallback())
         if self.eval_freq > 0 and not self.optimize_hyperparameters:
+            if self.n_eval_episodes < 1:
+                raise ValueError(
+                    f"--eval-episodes {self.n_eval_episodes}: give at least 1 episode per task, or --eval-freq -1 "
+                    "to turn the evaluation off."
+                )
             self._eval_env = self.create_envs(self.n_tasks, eval_env=True)
             self.eval_callback = ZooEvalCallback(
                 self._eval_env,

@@ -13,10 +13,10 @@ import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
-from rl_zoo3.utils import StoreDict, get_latest_run_id, get_model_path
+from rl_zoo3.utils import get_latest_run_id, get_model_path
 
 from sb3_mtte.envs import make_env_fns, make_mt_env
-from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments import output_folder_error, run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
@@ -26,6 +26,7 @@ from sb3_mtte.experiments.env_ids import (
     split_env_id,
 )
 from sb3_mtte.experiments.launcher import flag_value, has_flag, patched, register_algos
+from sb3_mtte.experiments.zoo_parsers import CheckedStoreDict
 from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
 
 
@@ -154,6 +155,10 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         os.environ["MUJOCO_GL"] = "egl"
     if not register_env_id(args.env):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+    counts = (("--episodes", args.episodes), ("-n", args.n_timesteps))
+    too_few = [f"{flag} {n}" for flag, n in counts if n is not None and n < 1]
+    if too_few:
+        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video).")
     register_algos()
     name_prefix, model_path, log_path = locate_model(args)
     info = run_info.read_run_info(log_path) or {}
@@ -161,12 +166,14 @@ def record_video(argv: Sequence[str]) -> list[Path]:
     env_kwargs = _saved_env_kwargs(log_path, args.env)
     if args.env_kwargs:
         namespace = argparse.Namespace()
-        StoreDict(["--env-kwargs"], "env_kwargs")(parser, namespace, args.env_kwargs)
+        CheckedStoreDict(["--env-kwargs"], "env_kwargs")(parser, namespace, args.env_kwargs, "--env-kwargs")
         env_kwargs.update(namespace.env_kwargs)
     env_kwargs["render_mode"] = "rgb_array"
     benchmark = split_env_id(args.env)[0]
     model = load_model(model_path, device=args.device)
     out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
+    if output_folder_error("-o", out_dir):
+        raise SystemExit(output_folder_error("-o", out_dir))
     out_dir.mkdir(parents=True, exist_ok=True)
     written = record_task_videos(model, make_env_fns(benchmark, seed=seed, **env_kwargs), args, out_dir, name_prefix)
     if args.tile:

@@ -47,7 +47,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments import command_prog
+from sb3_mtte.experiments import command_prog, output_folder_error
 from sb3_mtte.experiments.bellman_table import bellman_table
 from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.records import load_runs
@@ -187,6 +187,14 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     if args.reps < 1:
         parser.error("--reps must be at least 1")
+    problems = [
+        f"{source}: no such folder; give folders of runs (train's -f) or records"
+        for source in args.sources
+        if not Path(source).is_dir()
+    ]
+    problems.append(output_folder_error("--out", opts.out))
+    if any(problems):
+        parser.exit(2, f"{parser.prog}: error: {next(p for p in problems if p)}\n")
     try:
         written = make_plots(args.sources, opts)
     except PlotInputError as error:

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments import command_prog
+from sb3_mtte.experiments import command_prog, output_folder_error
 from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.run_info import read_json
 from sb3_mtte.experiments.runs import Run, Series, discover_runs, results_benchmark, task_scalar
@@ -259,6 +259,11 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         help=f"folder for the records, written as <env id>/<algo>_seed<k>.json (default: {DEFAULT_RECORDS_DIR})",
     )
     args = parser.parse_args(argv)
+    problem = output_folder_error("--out", args.out)
+    if not Path(args.runs_dir).is_dir():
+        problem = f"{args.runs_dir}: no such folder; give train's -f"
+    if problem:
+        parser.exit(2, f"{parser.prog}: error: {problem}\n")
     paths = write_records(args.runs_dir, args.out)
     for path in paths:
         print(path)

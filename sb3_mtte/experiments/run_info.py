@@ -23,6 +23,7 @@ import platform
 import socket
 import subprocess
 import sys
+import zipfile
 from collections.abc import Mapping
 from importlib.metadata import version as dist_version
 from pathlib import Path
@@ -179,6 +180,15 @@ def read_json(path: Path) -> Any:
         return json.loads(path.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise SystemExit(f"{path} is not valid JSON ({error}): fix or remove it") from None
+
+
+def read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays in the ``.npz`` file ``path``; a file that is not one exits with one line naming it."""
+    try:
+        with np.load(path) as data:
+            return {key: np.asarray(data[key]) for key in data.files}
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        raise SystemExit(f"{path} is not a valid .npz file ({error}): fix or remove it") from None
 
 
 def read_run_info(run_dir: str | os.PathLike) -> dict[str, Any] | None:

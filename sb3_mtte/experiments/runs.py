@@ -26,7 +26,7 @@ from tensorboard.backend.event_processing import event_accumulator
 
 from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.envs import MT50_TASKS, REWARD_FUNCTION_VERSIONS
-from sb3_mtte.experiments.run_info import RUN_INFO_FILE, read_json
+from sb3_mtte.experiments.run_info import RUN_INFO_FILE, read_json, read_npz
 from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
 
@@ -129,8 +129,7 @@ def load_run(path: Path) -> Run:
     """Read a run folder (see the module docstring)."""
     run = Run(path, read_json(path / RUN_INFO_FILE))
     if (path / "evaluations.npz").is_file():
-        with np.load(path / "evaluations.npz") as data:
-            run.evaluations = {key: np.asarray(data[key]) for key in data.files}
+        run.evaluations = read_npz(path / "evaluations.npz")
     if (path / "progress.csv").is_file():
         run.scalars = read_progress_csv(path / "progress.csv")
     elif any(path.rglob("events.out.tfevents.*")):
@@ -142,7 +141,7 @@ def load_run(path: Path) -> Run:
             except json.JSONDecodeError:
                 continue
     if (path / "success.json").is_file():
-        run.final = json.loads((path / "success.json").read_text())
+        run.final = read_json(path / "success.json")
     return run
 
 

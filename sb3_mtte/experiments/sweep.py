@@ -31,7 +31,7 @@ import numpy as np
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
-from sb3_mtte.experiments import command_prog, launcher, run_info
+from sb3_mtte.experiments import command_prog, launcher, output_folder_error, run_info
 from sb3_mtte.experiments.configs import missing_entries_message
 from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
@@ -125,10 +125,10 @@ def last_success(run_dir: Path) -> float | None:
     path = run_dir / "evaluations.npz"
     if not path.is_file():
         return None
-    with np.load(path) as data:
-        if len(data["timesteps"]) == 0:
-            return None
-        return float(np.mean(data["success_rate"][-1]))
+    data = run_info.read_npz(path)
+    if len(data["timesteps"]) == 0:
+        return None
+    return float(np.mean(data["success_rate"][-1]))
 
 
 def write_sweep_file(out: Path, trials: list[dict[str, Any]], args: argparse.Namespace, extra: Sequence[str]) -> None:
@@ -260,4 +260,11 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
             missing = missing_entries_message(algo, [env_id_for(env, args.budget) for env in args.envs], "-- -conf")
             if missing:
                 parser.error(missing)
+    problem = output_folder_error("--out", args.out)
+    try:
+        import_ray()
+    except ImportError as error:
+        problem = problem or str(error)
+    if problem:
+        parser.exit(2, f"{parser.prog}: error: {problem}\n")
     return run_sweep(args, extra)

@@ -28,6 +28,7 @@ from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHook
 from sb3_mtte.common.utils import (
     caller_stacklevel,
     check_batch_size,
+    check_buffer_size,
     check_learning_rate,
     check_multitask_env,
     check_not_gymnasium_vector_env,
@@ -150,6 +151,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
     ) -> None:
         check_not_gymnasium_vector_env(env)
         check_batch_size(batch_size)
+        check_buffer_size(buffer_size)
         check_learning_rate(learning_rate)
         check_q_loss_clip(q_loss_clip)
         check_gradient_surgery(gradient_surgery, cagrad_c)

@@ -1,0 +1,107 @@
+"""Mistakes on the commands after training (evaluate, record, plot, sweep, record_video) end with one line naming
+the fix, before any work is done."""
+
+from __future__ import annotations
+
+import json
+import sys
+
+import numpy as np
+import pytest
+from conftest import ENV
+
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback
+from sb3_mtte.envs import make_mt_env
+from sb3_mtte.experiments import evaluate, plot, records, sweep
+from sb3_mtte.zoo import main as zoo_main
+
+
+def one_line_error(capsys, command, argv: list[str]) -> str:
+    """The error line a command exits with (status 2, on stderr, no traceback)."""
+    with pytest.raises(SystemExit) as exit_info:
+        command(argv)
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and "Traceback" not in error, error
+    return error.split("error: ", 1)[1].strip()
+
+
+def a_run_folder(root, **files: bytes):
+    """A run folder with a run_info.json and the given files."""
+    run = root / "mtsac_mt" / f"{ENV}_1"
+    run.mkdir(parents=True)
+    info = {"algo": "mtsac_mt", "env_id": ENV, "seed": 0, "task_names": ["a", "b", "c", "d"], "n_tasks": 4}
+    (run / "run_info.json").write_text(json.dumps(info))
+    for name, content in files.items():
+        (run / name.replace("_json", ".json").replace("_npz", ".npz")).write_bytes(content)
+    return run
+
+
+def test_evaluate_refuses_a_folder_as_its_output_file(tmp_path, capsys):
+    (tmp_path / "results").mkdir()
+    for out in (str(tmp_path / "results"), str(tmp_path / "new") + "/"):
+        message = one_line_error(capsys, evaluate.main, ["no_model.zip", "--out", out])
+        assert message.startswith(f"--out {out} is a folder: give a file path (e.g. ")
+
+
+def test_plot_names_a_source_that_is_not_a_folder_and_an_output_that_is_a_file(tmp_path, capsys):
+    a_run_folder(tmp_path / "runs")
+    message = one_line_error(capsys, plot.main, [str(tmp_path / "runs"), str(tmp_path / "recrods")])
+    assert message == f"{tmp_path / 'recrods'}: no such folder; give folders of runs (train's -f) or records"
+    (tmp_path / "figures").write_text("")
+    message = one_line_error(capsys, plot.main, [str(tmp_path / "runs"), "--out", str(tmp_path / "figures")])
+    assert message == f"--out {tmp_path / 'figures'} is a file: give a folder."
+
+
+def test_record_names_a_missing_runs_folder_and_an_output_that_is_a_file(tmp_path, capsys):
+    message = one_line_error(capsys, records.main, [str(tmp_path / "nope"), "--out", str(tmp_path / "records")])
+    assert message == f"{tmp_path / 'nope'}: no such folder; give train's -f"
+    (tmp_path / "records").write_text("")
+    message = one_line_error(capsys, records.main, [str(tmp_path), "--out", str(tmp_path / "records")])
+    assert message == f"--out {tmp_path / 'records'} is a file: give a folder."
+
+
+@pytest.mark.parametrize(
+    ("files", "expected"),
+    [
+        ({"evaluations_npz": b"PK\x03\x04 cut short"}, r"evaluations\.npz is not a valid \.npz file \(.*\): fix or"),
+        ({"success_json": b'{"mean": 0.'}, r"success\.json is not valid JSON \(.*\): fix or remove it"),
+    ],
+)
+def test_a_damaged_file_in_a_run_folder_is_named(tmp_path, files, expected):
+    a_run_folder(tmp_path, **files)
+    with pytest.raises(SystemExit, match=expected):
+        plot.main([str(tmp_path), "--out", str(tmp_path / "figures")])
+
+
+def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
+    monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
+    argv = ["--algos", "mtsac_mt", "--envs", "toy-conflict", "--out", str(tmp_path / "sweep")]
+    message = one_line_error(capsys, sweep.main, argv)
+    assert message == 'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
+
+
+@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"]])
+def test_record_video_refuses_no_episode_or_no_step(tmp_path, flags):
+    with pytest.raises(SystemExit) as exit_info:
+        zoo_main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *flags])
+    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video)."
+
+
+@pytest.mark.parametrize("episodes", [0, 2.5])
+def test_an_evaluation_callback_of_no_episode_is_refused(episodes):
+    with pytest.raises(ValueError, match=r"^episodes_per_task must be a positive int, got .*; to evaluate less often"):
+        MultiTaskEvalCallback(make_mt_env(ENV), episodes_per_task=episodes)
+
+
+def test_the_evaluations_file_is_replaced_whole(tmp_path):
+    """Written beside and moved over the old file: no partial file, no temporary file left."""
+    callback = MultiTaskEvalCallback(make_mt_env(ENV), episodes_per_task=1, log_path=tmp_path)
+    callback.evaluations_timesteps, callback.evaluations_success = [100], [np.array([0.0, 1.0, 0.5, 0.0])]
+    callback.save_evaluations()
+    callback.evaluations_timesteps.append(200)
+    callback.evaluations_success.append(np.ones(4))
+    callback.save_evaluations()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["evaluations.npz"]
+    with np.load(tmp_path / "evaluations.npz") as data:
+        assert data["timesteps"].tolist() == [100, 200] and data["success_rate"].shape == (2, 4)
