@@ -172,8 +172,9 @@ def record_video(argv: Sequence[str]) -> list[Path]:
     benchmark = split_env_id(args.env)[0]
     model = load_model(model_path, device=args.device)
     out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
-    if output_folder_error("-o", out_dir):
-        raise SystemExit(output_folder_error("-o", out_dir))
+    out_error = output_folder_error("-o", out_dir)
+    if out_error:
+        raise SystemExit(out_error)
     out_dir.mkdir(parents=True, exist_ok=True)
     written = record_task_videos(model, make_env_fns(benchmark, seed=seed, **env_kwargs), args, out_dir, name_prefix)
     if args.tile:

@@ -187,14 +187,12 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     if args.reps < 1:
         parser.error("--reps must be at least 1")
-    problems = [
-        f"{source}: no such folder; give folders of runs (train's -f) or records"
-        for source in args.sources
-        if not Path(source).is_dir()
-    ]
-    problems.append(output_folder_error("--out", opts.out))
-    if any(problems):
-        parser.exit(2, f"{parser.prog}: error: {next(p for p in problems if p)}\n")
+    missing = [source for source in args.sources if not Path(source).is_dir()]
+    problem = output_folder_error("--out", opts.out)
+    if missing:
+        problem = f"{missing[0]}: no such folder; give folders of runs (train's -f) or records"
+    if problem:
+        parser.exit(2, f"{parser.prog}: error: {problem}\n")
     try:
         written = make_plots(args.sources, opts)
     except PlotInputError as error:
