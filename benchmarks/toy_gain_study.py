@@ -1,8 +1,8 @@
 """Final success on toy-conflict for several factors on E_phi's initial mean head (``z_mean_init_gain``).
 
-The settings of ``tests/test_mtsacte.py::test_learns_toy_conflict`` (its ``_learn_toy``: 2 x 64 nets, L = 64, H = 50
-vector steps, 10 J^rep steps per iteration), 16k env steps, evaluated with 50 episodes per task on the seed + 1000
-benchmark; one JSON line per run, one torch thread.
+The settings of ``tests/test_mtsacte_learning.py::test_learns_toy_conflict`` (its ``_learn_toy``: 2 x 64 nets, L = 64,
+H = 50 vector steps, 10 J^rep steps per iteration), 16k env steps, evaluated with 50 episodes per task on the seed +
+1000 benchmark; one JSON line per run, one torch thread.
 
     python benchmarks/toy_gain_study.py --gains 1 3 5 10 50 --seeds 0 1 > docs/results/toy_gain_study.jsonl
 """
@@ -21,7 +21,7 @@ import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait befo
 import torch as th
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from test_mtsacte import _learn_toy
+from test_mtsacte_learning import _learn_toy
 
 
 def main() -> None:

@@ -7,7 +7,8 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 import torch as th
-from conftest import fixed_randn_like, loop_log_prob, loop_q, loop_split
+from conftest import fixed_randn_like
+from references import loop_log_prob, loop_q, loop_split
 from stable_baselines3 import SAC
 from stable_baselines3.common.vec_env import DummyVecEnv
 

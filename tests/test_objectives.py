@@ -9,15 +9,8 @@ import math
 
 import pytest
 import torch as th
-from conftest import (
-    disable_representation_updates,
-    fixed_randn_like,
-    kappa_benign_set,
-    loop_log_prob,
-    loop_q,
-    loop_split,
-    small_model_kwargs,
-)
+from conftest import disable_representation_updates, fixed_randn_like, small_model_kwargs
+from references import kappa_benign_set, loop_log_prob, loop_q, loop_split
 
 from sb3_mtte import MTSACTE, make_mt_env
 from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective

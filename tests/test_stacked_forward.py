@@ -6,7 +6,8 @@ from __future__ import annotations
 
 import pytest
 import torch as th
-from conftest import loop_nt_objective, loop_transfer, make_ent_coef, make_rep_batch, make_te_policy
+from conftest import make_ent_coef, make_rep_batch, make_te_policy
+from references import loop_nt_objective, loop_transfer
 from torch import nn
 from torch.func import functional_call
 
