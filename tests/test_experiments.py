@@ -104,7 +104,7 @@ def test_console_script_is_declared_and_dispatches(capsys):
     config.read(ROOT / "setup.cfg")
     scripts = config["options.entry_points"]["console_scripts"].strip()
     assert scripts == "sb3-mtte = sb3_mtte.experiments.cli:console_main"
-    assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "record", "plot", "sweep"}
+    assert set(cli.COMMANDS) == {"train", "enjoy", "record_video", "evaluate", "record", "plot", "compare", "sweep"}
     for command in cli.COMMANDS:
         with pytest.raises(SystemExit) as exit_info:
             cli.main([command, "--help"])
@@ -224,12 +224,12 @@ def test_sweep_help_describes_every_option(capsys):
     assert "CPUs Ray reserves for each run" in out and "GPUs Ray reserves for each run" in out
 
 
-@pytest.mark.parametrize("module", ["evaluate", "plot", "sweep"])
+@pytest.mark.parametrize("module", ["evaluate", "plot", "compare", "sweep"])
 @pytest.mark.parametrize("called_as", ["console script", "module"])
 def test_usage_lines_name_the_entry_point_that_was_called(monkeypatch, capsys, module, called_as):
-    from sb3_mtte.experiments import sweep
+    from sb3_mtte.experiments import compare, sweep
 
-    main = {"evaluate": evaluate.main, "plot": plot.main, "sweep": sweep.main}[module]
+    main = {"evaluate": evaluate.main, "plot": plot.main, "compare": compare.main, "sweep": sweep.main}[module]
     argv0 = "/venv/bin/sb3-mtte" if called_as == "console script" else f"/src/sb3_mtte/{module}.py"
     monkeypatch.setattr("sys.argv", [argv0])
     with pytest.raises(SystemExit):

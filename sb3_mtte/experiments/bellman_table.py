@@ -68,6 +68,11 @@ def _thousands(env_steps: float) -> str:
     return f"{env_steps / 1000:g}k" if env_steps else "0"
 
 
+def window_names(edges: Sequence[float]) -> list[str]:
+    """``0-20k``, ``20k-40k``, ...: the windows that end at ``edges`` (env steps per task), the first from 0."""
+    return [f"{_thousands(low)}-{_thousands(high)}" for low, high in zip([0.0, *edges[:-1]], edges, strict=True)]
+
+
 def _clip(run: Run) -> str:
     clip = run.scalar(CLIP_FRACTION_KEY)
     if clip is None or not len(clip[1]):
@@ -96,8 +101,7 @@ def bellman_table(bench: str, groups: dict[str, list[Run]]) -> str | None:
     if not rows:
         return None
     edges = max((row[3] for row in rows), key=lambda grid: (grid[-1], len(grid)))
-    windows = [f"{_thousands(low)}-{_thousands(high)}" for low, high in zip([0.0, *edges[:-1]], edges, strict=True)]
-    headers = ["Algorithm", "Seed", *windows, "Peak", "Clip dropped (mean / max, %)"]
+    headers = ["Algorithm", "Seed", *window_names(list(edges)), "Peak", "Clip dropped (mean / max, %)"]
     lines = ["| " + " | ".join(headers) + " |", "|:--|--:|" + "--:|" * (len(headers) - 2)]
     for run, steps, losses, _ in rows:
         lines.append("| " + " | ".join(_row(run, steps / run.n_tasks, losses, edges)) + " |")

@@ -1,4 +1,5 @@
-"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|record|plot|sweep`` (and ``python -m sb3_mtte.zoo``).
+"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|record|plot|compare|sweep`` (and ``python -m
+sb3_mtte.zoo``).
 
 Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
 
@@ -10,10 +11,11 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
     sb3-mtte evaluate logs/mtsacte/MT10_1/MT10.zip --episodes 50
     sb3-mtte record logs                                   # docs/records/<env id>/<algo>_seed<k>.json
     sb3-mtte plot docs/records --out docs/figures          # from records (and/or run folders)
+    sb3-mtte compare docs/records --benchmark MT10-100k    # two algorithms, as fixed before the runs
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
-``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``
-and ``python -m sb3_mtte.sweep`` are the same commands.
+``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``,
+``python -m sb3_mtte.compare`` and ``python -m sb3_mtte.sweep`` are the same commands.
 
 What ``train`` adds to rl-zoo3: the package's zoo keys (:mod:`~sb3_mtte.experiments.variants`) in ``rl_zoo3.ALGOS``
 with their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
@@ -37,7 +39,7 @@ from typing import Any
 
 import rl_zoo3.enjoy
 
-from sb3_mtte.experiments import evaluate, plot, records, sweep
+from sb3_mtte.experiments import compare, evaluate, plot, records, sweep
 from sb3_mtte.experiments.env_ids import register_standard_env_ids
 from sb3_mtte.experiments.launcher import train
 from sb3_mtte.experiments.playback import enjoy, record_video
@@ -61,6 +63,7 @@ COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
     **ZOO_COMMANDS,
     "evaluate": evaluate.main,
     "plot": plot.main,
+    "compare": compare.main,
     "record": records.main,
     "sweep": sweep.main,
 }

@@ -1,0 +1,308 @@
+"""Two algorithms on one benchmark, compared as fixed before the runs (docs/results.md): the difference of their
+mean final success with a bootstrap interval and Welch's t, on the replication seeds and on all seeds, rliable's
+aggregates beside it, and the runs whose soft Bellman error ran away.
+
+Usage::
+
+    sb3-mtte compare SOURCE [SOURCE ...] --benchmark MT10-100k [--a Ours] [--b SAC-MT]
+                     [--replication-seeds 3 4 5 6 7] [--runaway-loss 100] [--fell 0.2] [--out FILE]
+
+A benchmark with a registered comparison (:data:`PREREGISTERED`) takes its algorithms, seeds and criterion from it;
+the flags override them. Only runs with a final evaluation count.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+from scipy import stats
+
+from sb3_mtte.common.utils import short_task_name
+from sb3_mtte.experiments import command_prog, output_file_error
+from sb3_mtte.experiments.bellman_table import critic_losses, evaluation_steps, window_names, window_peaks
+from sb3_mtte.experiments.records import load_runs
+from sb3_mtte.experiments.runs import Run, group_runs, success_curve
+from sb3_mtte.experiments.statistics import (
+    DEFAULT_REPS,
+    DEFAULT_SEED,
+    Estimate,
+    aggregate_estimates,
+    final_task_scores,
+    has_final_evaluation,
+    improvement_probabilities,
+)
+
+DIFFERENCE_REPS = 10_000
+
+
+@dataclass(frozen=True)
+class Comparison:
+    """What a comparison was fixed to answer: ``a`` against ``b``, the seeds of the replication, and when a run's
+    soft Bellman error ran away (some task's window-mean critic loss above ``runaway_loss``) and a runaway task's
+    success fell with it (its final success ``fell`` or more below its best in-training success up to the end of
+    its first runaway window)."""
+
+    a: str = "Ours"
+    b: str = "SAC-MT"
+    replication_seeds: tuple[int, ...] = ()
+    runaway_loss: float = 100.0
+    fell: float = 0.2
+
+
+PREREGISTERED: dict[str, Comparison] = {"MT10-100k": Comparison(replication_seeds=(3, 4, 5, 6, 7))}
+"""Benchmark -> the comparison committed before its runs (docs/results.md)."""
+
+
+@dataclass(frozen=True)
+class MeanDifference:
+    """``mean(a) - mean(b)`` over runs with its percentile-bootstrap interval, and Welch's t test."""
+
+    value: float
+    low: float
+    high: float
+    t: float
+    df: float
+    p: float
+
+
+def mean_difference(a: np.ndarray, b: np.ndarray, reps: int = DIFFERENCE_REPS, seed: int = 0) -> MeanDifference:
+    """The difference of the means of ``a`` and ``b`` (one value per run); the 95% interval resamples runs within
+    each algorithm (``reps`` resamples from ``numpy.random.default_rng(seed)``: ``a``'s indices, then ``b``'s)."""
+    a, b = np.asarray(a, dtype=float), np.asarray(b, dtype=float)
+    rng = np.random.default_rng(seed)
+    draws_a = a[rng.integers(0, len(a), size=(reps, len(a)))].mean(axis=1)
+    draws_b = b[rng.integers(0, len(b), size=(reps, len(b)))].mean(axis=1)
+    low, high = np.percentile(draws_a - draws_b, [2.5, 97.5])
+    var_a, var_b = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
+    df = (var_a + var_b) ** 2 / (var_a**2 / (len(a) - 1) + var_b**2 / (len(b) - 1))
+    t, p = stats.ttest_ind(a, b, equal_var=False)
+    return MeanDifference(float(a.mean() - b.mean()), float(low), float(high), float(t), float(df), float(p))
+
+
+@dataclass(frozen=True)
+class Runaway:
+    """A run's largest window-mean critic loss (and its task), its first window above the criterion (None when it
+    stayed below), and the runaway task's best in-training success up to that window's end and final success."""
+
+    peak: float
+    task: int
+    window: int | None
+    best_before: float | None = None
+    final: float | None = None
+
+    def fell(self, points: float) -> bool:
+        return self.window is not None and self.final is not None and self.final <= (self.best_before or 0) - points
+
+
+def runaway(run: Run, edges: Sequence[float], loss: float) -> Runaway | None:
+    """The run's soft Bellman error over the windows ``(0, edges[0]], (edges[0], edges[1]], ...`` (env steps per
+    task); None without per-task critic losses."""
+    losses = critic_losses(run)
+    if losses is None:
+        return None
+    peaks = window_peaks(losses[0] / run.n_tasks, losses[1], list(edges))
+    largest = max((p for p in peaks if p is not None), default=None)
+    if largest is None:
+        return None
+    first = next((k for k, p in enumerate(peaks) if p is not None and p[0] > loss), None)
+    if first is None:
+        return Runaway(largest[0], largest[1], None)
+    task = peaks[first][1]
+    steps, values = success_curve(run, task)
+    seen = values[np.asarray(steps, dtype=float) / run.n_tasks <= edges[first]]
+    final = final_task_scores(run)
+    return Runaway(
+        largest[0], task, first, float(seen.max()) if len(seen) else None, None if final is None else float(final[task])
+    )
+
+
+def _finished(runs: Sequence[Run], seeds: Sequence[int] | None) -> list[Run]:
+    chosen = [run for run in runs if has_final_evaluation(run) and (seeds is None or run.seed in seeds)]
+    return sorted(chosen, key=lambda run: -1 if run.seed is None else run.seed)
+
+
+def _means(runs: Sequence[Run]) -> np.ndarray:
+    return np.array([float(np.mean(final_task_scores(run))) for run in runs])
+
+
+def _pct(value: float) -> str:
+    return f"{100 * value:.1f}"
+
+
+def _difference_row(name: str, a: list[Run], b: list[Run]) -> str:
+    cells = [name, str(len(a)), str(len(b))]
+    if len(a) < 2 or len(b) < 2:
+        return "| " + " | ".join(cells + ["-"] * 4) + " |"
+    means_a, means_b = _means(a), _means(b)
+    diff = mean_difference(means_a, means_b)
+    cells += [
+        f"{_pct(means_a.mean())} / {_pct(means_b.mean())}",
+        f"{_pct(diff.value)} [{_pct(diff.low)}, {_pct(diff.high)}]",
+        f"{diff.t:.2f} ({diff.df:.1f})",
+        f"{diff.p:.3f}",
+    ]
+    return "| " + " | ".join(cells) + " |"
+
+
+def _estimate(estimate: Estimate, scale: float = 100.0, digits: int = 1) -> str:
+    value, low, high = (f"{scale * v:.{digits}f}" for v in (estimate.value, estimate.low, estimate.high))
+    return f"{value} [{low}, {high}]"
+
+
+def _rliable_rows(name: str, a: list[Run], b: list[Run], cmp: Comparison, reps: int) -> list[str]:
+    if not a or not b:
+        return []
+    scores = {label: np.stack([final_task_scores(r) for r in runs]) for label, runs in ((cmp.a, a), (cmp.b, b))}
+    aggregates = aggregate_estimates(scores, reps, DEFAULT_SEED)
+    improvement = improvement_probabilities(scores[cmp.a], {cmp.b: scores[cmp.b]}, reps, DEFAULT_SEED)
+    rows = []
+    for label in (cmp.a, cmp.b):
+        probability = _estimate(improvement[cmp.b], 1.0, 2) if label == cmp.b else "-"
+        estimates = aggregates[label]
+        cells = [name, label, str(len(scores[label])), _estimate(estimates["mean"]), _estimate(estimates["iqm"])]
+        rows.append("| " + " | ".join([*cells, probability]) + " |")
+    return rows
+
+
+def _window_edges(runs: Sequence[Run]) -> list[float] | None:
+    grids = [grid for grid in (evaluation_steps(run) for run in runs) if grid is not None]
+    return list(max(grids, key=lambda grid: (grid[-1], len(grid)))) if grids else None
+
+
+def _runaway_rows(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> list[str]:
+    rows = []
+    for run in runs:
+        found = runaway(run, edges, cmp.runaway_loss)
+        if found is None:
+            rows.append(f"| {run.label} | {run.seed} | - | - | - | {_pct(_means([run])[0])} |")
+            continue
+        name = short_task_name(run.task_names[found.task]) if run.task_names else str(found.task)
+        ran, fell = "no", "-"
+        if found.window is not None:
+            ran = f"yes, from window {found.window + 1}"
+            change = f"{_pct(found.best_before or 0)} -> {_pct(found.final or 0)}"
+            fell = f"{'yes' if found.fell(cmp.fell) else 'no'} ({change})"
+        cells = [run.label, str(run.seed), f"{found.peak:,.1f} {name}", ran, fell, _pct(_means([run])[0])]
+        rows.append("| " + " | ".join(cells) + " |")
+    return rows
+
+
+def _runaway_count(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> int:
+    return sum(1 for run in runs if (found := runaway(run, edges, cmp.runaway_loss)) and found.window is not None)
+
+
+def _fisher_line(name: str, a: list[Run], b: list[Run], edges: Sequence[float], cmp: Comparison) -> str:
+    count_a, count_b = _runaway_count(a, edges, cmp), _runaway_count(b, edges, cmp)
+    line = f"- {name}: {cmp.a} {count_a} of {len(a)}, {cmp.b} {count_b} of {len(b)} runs ran away"
+    if a and b:
+        _, p = stats.fisher_exact([[count_a, len(a) - count_a], [count_b, len(b) - count_b]])
+        line += f"; Fisher's exact test (two-sided) p = {float(p):.3f}"
+    return line + "."
+
+
+def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: int = DEFAULT_REPS) -> str:
+    """The markdown report of ``cmp`` on the runs of benchmark ``bench`` that have a final evaluation (rliable's
+    intervals from ``reps`` resamples)."""
+    groups = group_runs(runs).get(bench, {})
+    everything = {label: _finished(groups.get(label, []), None) for label in (cmp.a, cmp.b)}
+    subsets = [("all seeds", None)]
+    if cmp.replication_seeds:
+        subsets.insert(0, ("seeds " + " ".join(map(str, cmp.replication_seeds)), cmp.replication_seeds))
+    chosen = {name: [_finished(everything[label], seeds) for label in (cmp.a, cmp.b)] for name, seeds in subsets}
+    lines = [
+        f"{bench}: {cmp.a} against {cmp.b}, the final success (mean over tasks of each run's final evaluation). "
+        f"Difference: the mean over runs of {cmp.a} minus that of {cmp.b}, 95% percentile bootstrap over runs "
+        f"within each algorithm ({DIFFERENCE_REPS:,} resamples, seed 0); Welch's t with its degrees of freedom and "
+        "two-sided p.",
+        "",
+        f"| Seeds | n {cmp.a} | n {cmp.b} | Means (%) | Difference (points) | Welch t (df) | p |",
+        "|:--|--:|--:|--:|--:|--:|--:|",
+        *(_difference_row(name, *pair) for name, pair in chosen.items()),
+        "",
+        f"rliable over runs x tasks (95% stratified bootstrap, {reps} resamples, seed {DEFAULT_SEED}); "
+        f"P({cmp.a} > {cmp.b}) averages over tasks the chance that a run of {cmp.a} beats one of {cmp.b}, ties "
+        "counted one half, so a task at 0 in every run of both contributes exactly 0.5.",
+        "",
+        f"| Seeds | Algorithm | n | Mean (%) | IQM (%) | P({cmp.a} > {cmp.b}) |",
+        "|:--|:--|--:|--:|--:|--:|",
+        *(row for name, pair in chosen.items() for row in _rliable_rows(name, *pair, cmp, reps)),
+    ]
+    edges = _window_edges([run for pair in everything.values() for run in pair])
+    if edges is not None:
+        windows = ", ".join(window_names(edges))
+        lines += [
+            "",
+            f"Soft Bellman error: a run ran away when some task's critic loss, averaged over an evaluation window "
+            f"({windows} env steps per task), is above {cmp.runaway_loss:g}; its task fell with it when the task's "
+            f"final success is {_pct(cmp.fell)} points or more below its best in-training success up to the end of "
+            "the first window above the criterion (best -> final, %).",
+            "",
+            "| Algorithm | Seed | Largest window mean | Ran away | Fell with it | Final (%) |",
+            "|:--|--:|--:|:--|:--|--:|",
+            *_runaway_rows([*everything[cmp.a], *everything[cmp.b]], edges, cmp),
+            "",
+            *(_fisher_line(name, *pair, edges, cmp) for name, pair in chosen.items()),
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=command_prog("compare", "sb3_mtte.compare"),
+        description="Two algorithms of one benchmark compared as fixed before the runs: the difference of mean final "
+        "success with a bootstrap interval and Welch's t, rliable's aggregates, and the runs whose soft Bellman "
+        "error ran away (Fisher's exact test).",
+    )
+    parser.add_argument("sources", nargs="+", help="folders of run folders and records (e.g. docs/records)")
+    parser.add_argument("--benchmark", required=True, help="env id of the runs (e.g. MT10-100k)")
+    parser.add_argument("--a", help="the first algorithm's label (default: the registered one, else Ours)")
+    parser.add_argument("--b", help="the second algorithm's label (default: the registered one, else SAC-MT)")
+    parser.add_argument("--replication-seeds", type=int, nargs="+", help="seeds of the replication")
+    parser.add_argument("--runaway-loss", type=float, help="window-mean critic loss above which a run ran away")
+    parser.add_argument("--fell", type=float, help="drop in success (0-1) that counts as falling with it")
+    parser.add_argument("--reps", type=int, default=DEFAULT_REPS, help="rliable's bootstrap resamples")
+    parser.add_argument("--out", help="also write the report to this markdown file")
+    return parser
+
+
+def _comparison(args: argparse.Namespace) -> Comparison:
+    cmp = PREREGISTERED.get(args.benchmark, Comparison())
+    given = {
+        "a": args.a,
+        "b": args.b,
+        "replication_seeds": None if args.replication_seeds is None else tuple(args.replication_seeds),
+        "runaway_loss": args.runaway_loss,
+        "fell": args.fell,
+    }
+    return replace(cmp, **{key: value for key, value in given.items() if value is not None})
+
+
+def main(argv: Sequence[str] | None = None) -> str:
+    parser = _parser()
+    args = parser.parse_args(argv)
+    missing = [source for source in args.sources if not Path(source).is_dir()]
+    if missing:
+        parser.error(f"{missing[0]} is not a folder: give folders of run folders or records (e.g. docs/records).")
+    if args.reps < 1:
+        parser.error(f"--reps {args.reps}: give a number of resamples of at least 1 (default {DEFAULT_REPS}).")
+    if args.out and (problem := output_file_error("--out", args.out)):
+        parser.error(problem)
+    cmp = _comparison(args)
+    runs = load_runs(args.sources)
+    labels = group_runs(runs).get(args.benchmark, {})
+    absent = [label for label in (cmp.a, cmp.b) if label not in labels]
+    if absent:
+        known = ", ".join(sorted(labels)) or "none"
+        where = " ".join(args.sources)
+        parser.error(f"no runs of {absent[0]} on {args.benchmark} in {where} (algorithms there: {known}).")
+    report = comparison_report(args.benchmark, runs, cmp, args.reps)
+    if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.out).write_text(report)
+    sys.stdout.write(report)
+    return report
