@@ -1,13 +1,18 @@
-"""How often mu singles out the conflicting task of toy-conflict, for each ``nt_measure`` of MTSACTE.
+"""How often mu singles out the conflicting task of toy-conflict, for each ``nt_measure`` of MTSACTE and each gain
+of E_phi's initial mean head (``z_mean_init_gain``).
 
-For each seed and each measure (``per_batch``: the paper; ``mean`` and ``significant``: over an iteration's batches),
-trains MTSACTE on ``toy-conflict`` with its zoo settings (``zoo_configs/mtsacte.yml``) and records mu and w after
-every iteration's J^rep steps (the values that weight the policy during the iteration). Reports, per measure, the
-fraction of iterations in which the conflicting task (the last one) has the strictly largest mu (over the whole run
-and over its first quarter), its mean weight, the final success (10 episodes per task) and the env steps until the
-periodic evaluation first reaches 90%. Prints one JSON object; ``--out FILE`` also writes it.
+For each seed, gain and measure (``per_batch``: the paper; ``mean`` and ``significant``: over an iteration's batches),
+trains MTSACTE on ``toy-conflict`` with its zoo settings (``zoo_configs/mtsacte.yml``) and records mu, C_s and w
+after every iteration's J^rep steps (the values that weight the policy during the iteration). Reports, per measure
+and gain, the fraction of iterations in which the conflicting task (the last one) has the strictly largest mu (over
+the whole run and over its first quarter), whether its mean mu over the first six iterations is strictly the largest,
+its share of C_s and its mean weight, how far w is from uniform (total variation distance, mean over the run and over
+its first quarter), the final success (10 episodes per task) and the env steps until the periodic evaluation first
+reaches 90%. Prints one JSON object; ``--out FILE`` also writes it.
 
     python benchmarks/nt_robustness.py --seeds 0 1 2 --out docs/results/nt_robustness.json
+    python benchmarks/nt_robustness.py --seeds 0 1 2 --measures per_batch --gains 1 50 \
+        --out docs/results/nt_gain_study.json
 """
 
 from __future__ import annotations
@@ -25,6 +30,8 @@ import yaml
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_mtte import MTSACTE, __version__, evaluate_success, make_mt_env
+from sb3_mtte.experiments.configs import find_config_dir
+from sb3_mtte.experiments.records import distance_from_uniform
 
 BENCHMARK = "toy-conflict"
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
@@ -32,7 +39,7 @@ LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_fr
 
 def toy_settings() -> tuple[int, dict[str, Any]]:
     """Budget and MTSACTE arguments of the ``toy-conflict`` entry of the zoo config."""
-    path = Path(__file__).resolve().parents[1] / "sb3_mtte" / "zoo_configs" / "mtsacte.yml"
+    path = find_config_dir() / "mtsacte.yml"
     entry = dict(yaml.safe_load(path.read_text())[BENCHMARK])
     budget = int(entry["n_timesteps"])
     kwargs = {key: value for key, value in entry.items() if key not in LAUNCHER_KEYS}
@@ -60,19 +67,31 @@ class SuccessTrace(BaseCallback):
 
 
 def strictly_largest(mu: np.ndarray) -> np.ndarray:
-    last = mu.shape[1] - 1
-    return mu[:, last] > np.delete(mu, last, axis=1).max(axis=1)
+    """Per row of ``mu`` ``(..., tasks)``: whether the last task's value is strictly the largest."""
+    last = mu.shape[-1] - 1
+    return mu[..., last] > np.delete(mu, last, axis=-1).max(axis=-1)
 
 
-def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any]) -> dict[str, Any]:
+FIRST_ITERATIONS = 6
+
+
+def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any], gain: float | None = None) -> dict[str, Any]:
     env = make_mt_env(BENCHMARK, seed=seed)
+    if gain is not None:
+        kwargs = {**kwargs, "policy_kwargs": {**kwargs["policy_kwargs"], "z_mean_init_gain": gain}}
     model = MTSACTE("MlpPolicy", env, seed=seed, device="cpu", nt_measure=measure, **kwargs)
     records: list[dict[str, Any]] = []
     update = model.update_representation
 
     def recorded_update(batch_size: int) -> None:
         update(batch_size)
-        records.append({"mu": model.mu.tolist(), "weights": model.task_weights.tolist()})
+        records.append(
+            {
+                "mu": model.mu.tolist(),
+                "weights": model.task_weights.tolist(),
+                "selected": model.selected_tasks.tolist(),
+            }
+        )
 
     model.update_representation = recorded_update  # type: ignore[method-assign]
     start = time.perf_counter()
@@ -81,16 +100,26 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any]) -> dict[st
     seconds = time.perf_counter() - start
     success = evaluate_success(model, BENCHMARK, episodes_per_task=10, seed=seed + 1000)
     env.close()
-    mu = np.array([r["mu"] for r in records])
+    mu = np.array([r["mu"] for r in records], dtype=float)
     weights = np.array([r["weights"] for r in records])
+    selected = np.array([r["selected"] for r in records], dtype=float)
     singled_out = strictly_largest(mu)
+    quarter = max(1, len(records) // 4)
+    distance = distance_from_uniform(weights)
     reached = [steps for steps, success in trace.trace if success >= 0.9]
     return {
         "seed": seed,
         "nt_measure": measure,
+        "z_mean_init_gain": kwargs["policy_kwargs"].get("z_mean_init_gain"),
         "iterations": len(records),
         "conflicting_strictly_largest": float(singled_out.mean()),
-        "conflicting_strictly_largest_first_quarter": float(singled_out[: max(1, len(records) // 4)].mean()),
+        "conflicting_strictly_largest_first_quarter": float(singled_out[:quarter].mean()),
+        "conflicting_largest_mean_mu_first_six": bool(strictly_largest(mu[:FIRST_ITERATIONS].mean(axis=0))),
+        "conflicting_selected": float(selected[:, -1].mean()),
+        "weights_distance_from_uniform": float(distance.mean()),
+        "weights_distance_from_uniform_first_quarter": float(distance[:quarter].mean()),
+        "mu_over_time": mu.tolist(),
+        "weights_distance_over_time": distance.round(5).tolist(),
         "conflicting_mean_weight": float(weights[:, -1].mean()),
         "mean_mu": mu.mean(axis=0).tolist(),
         "mean_weights": weights.mean(axis=0).tolist(),
@@ -101,31 +130,48 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any]) -> dict[st
     }
 
 
+SUMMARISED = (
+    "conflicting_strictly_largest",
+    "conflicting_strictly_largest_first_quarter",
+    "conflicting_selected",
+    "conflicting_mean_weight",
+    "weights_distance_from_uniform",
+    "weights_distance_from_uniform_first_quarter",
+)
+
+
+def summarise_group(group: list[dict[str, Any]]) -> dict[str, Any]:
+    """[mean, std] over seeds of each SUMMARISED value, success and steps to 90%, and counts of seeds."""
+    summary: dict[str, Any] = {
+        key: [float(np.mean(values)), float(np.std(values))]
+        for key, values in {
+            **{key: [r[key] for r in group] for key in SUMMARISED},
+            "success": [r["success"]["mean"] for r in group],
+            "env_steps_to_90": [r["env_steps_to_90"] or float("nan") for r in group],
+        }.items()
+    }
+    summary["conflicting_mu_largest_on_average"] = sum(
+        int(np.argmax(r["mean_mu"]) == len(r["mean_mu"]) - 1) for r in group
+    )
+    summary["conflicting_weight_smallest_on_average"] = sum(
+        int(np.argmin(r["mean_weights"]) == len(r["mean_weights"]) - 1) for r in group
+    )
+    summary["conflicting_largest_mean_mu_first_six"] = sum(
+        int(r["conflicting_largest_mean_mu_first_six"]) for r in group
+    )
+    summary["seeds"] = len(group)
+    return summary
+
+
 def summarise(runs: list[dict[str, Any]]) -> dict[str, dict[str, Any]]:
+    """Summaries by measure, or by ``measure, gain z_mean_init_gain`` when the runs are of several gains."""
+    gains = sorted({r["z_mean_init_gain"] for r in runs}, key=lambda g: (g is None, g))
     summary = {}
     for measure in MEASURES:
-        group = [r for r in runs if r["nt_measure"] == measure]
-        if not group:
-            continue
-        summary[measure] = {
-            key: [float(np.mean(values)), float(np.std(values))]
-            for key, values in {
-                "conflicting_strictly_largest": [r["conflicting_strictly_largest"] for r in group],
-                "conflicting_strictly_largest_first_quarter": [
-                    r["conflicting_strictly_largest_first_quarter"] for r in group
-                ],
-                "conflicting_mean_weight": [r["conflicting_mean_weight"] for r in group],
-                "success": [r["success"]["mean"] for r in group],
-                "env_steps_to_90": [r["env_steps_to_90"] or float("nan") for r in group],
-            }.items()
-        }
-        summary[measure]["conflicting_mu_largest_on_average"] = sum(
-            int(np.argmax(r["mean_mu"]) == len(r["mean_mu"]) - 1) for r in group
-        )
-        summary[measure]["conflicting_weight_smallest_on_average"] = sum(
-            int(np.argmin(r["mean_weights"]) == len(r["mean_weights"]) - 1) for r in group
-        )
-        summary[measure]["seeds"] = len(group)
+        for gain in gains:
+            group = [r for r in runs if r["nt_measure"] == measure and r["z_mean_init_gain"] == gain]
+            if group:
+                summary[measure if len(gains) == 1 else f"{measure}, gain {gain:g}"] = summarise_group(group)
     return summary
 
 
@@ -146,12 +192,16 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--measures", nargs="+", choices=MEASURES, default=list(MEASURES))
+    parser.add_argument("--gains", type=float, nargs="+", help="z_mean_init_gain values (default: the config's)")
     parser.add_argument("--num-threads", type=int, default=1)
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args()
     th.set_num_threads(args.num_threads)
     budget, kwargs = toy_settings()
-    runs = [run(seed, measure, budget, kwargs) for seed in args.seeds for measure in args.measures]
+    gains = args.gains or [None]
+    runs = [
+        run(seed, measure, budget, kwargs, gain) for seed in args.seeds for measure in args.measures for gain in gains
+    ]
     result = {
         "benchmark": BENCHMARK,
         "env_steps": budget,
@@ -163,7 +213,8 @@ def main() -> None:
         "command": "python benchmarks/nt_robustness.py --seeds "
         + " ".join(map(str, args.seeds))
         + " --measures "
-        + " ".join(args.measures),
+        + " ".join(args.measures)
+        + ("" if args.gains is None else " --gains " + " ".join(f"{g:g}" for g in args.gains)),
     }
     print_and_write(result, args.out)
 

@@ -365,3 +365,14 @@ def test_a_record_keeps_the_per_task_critic_loss_and_clip_fraction_of_its_log(tm
     back = records.run_from_record(json.loads(json.dumps(records.run_record(run))), tmp_path / "r.json")
     np.testing.assert_array_equal(back.scalar(keys[1])[1], [t * 2.0 for t in kept])
     np.testing.assert_array_equal(back.scalar("train/q_loss_clip_fraction")[0], kept)
+
+
+def test_a_record_keeps_how_far_w_was_from_uniform_at_every_recomputation():
+    """Total variation distance: uniform w -> 0; (0.7, 0.1, 0.1, 0.1) -> (0.45 + 3 x 0.15) / 2 = 0.45;
+    (1, 0, 0, 0) -> (0.75 + 3 x 0.25) / 2 = 0.75 = 1 - 1/N."""
+    weights = [[0.25] * 4, [0.7, 0.1, 0.1, 0.1], [1.0, 0.0, 0.0, 0.0]]
+    nt = [{"timesteps": 10 * k, "mu": [0] * 4, "selected": [1] * 4, "weights": w} for k, w in enumerate(weights)]
+    run = Run(Path("x"), {"task_names": ["a", "b", "c", "d"]}, nt_records=nt)
+    representation = records.run_record(run)["representation"]
+    assert representation["weights_distance"] == pytest.approx([0.0, 0.45, 0.75])
+    assert representation["mean_weights"] == pytest.approx([0.65, 0.35 / 3, 0.35 / 3, 0.35 / 3], abs=1e-6)

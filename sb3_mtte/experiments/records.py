@@ -16,8 +16,10 @@ repository. Its fields (format :data:`RECORD_VERSION`):
   ``deterministic``;
 - ``training``: the per-task critic loss (soft Bellman error) ``(points, tasks)`` and, with a clip, the share of samples
   Eq. 16 dropped, at up to :data:`TRAINING_POINTS` of the log's dumps (``env_steps``), for Figs. 3 and 6;
-- ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean and
-  z's std; the mean of mu, of w and of C_s membership per task over the run.
+- ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean,
+  z's std and how far w is from uniform (``weights_distance``: total variation distance, 0 for uniform weights, at
+  most 1 - 1/N; absent in records made before it); the mean of mu, of w and of C_s membership per task over the
+  run.
 
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
 Meta-World's v1 rewards; the default ``--out`` is ``docs/records``)::
@@ -80,14 +82,23 @@ def _training(run: Run) -> dict[str, Any] | None:
     return training
 
 
+def distance_from_uniform(weights: np.ndarray) -> np.ndarray:
+    """Total variation distance of each row of ``weights`` ``(..., tasks)`` from uniform weights: half the sum of
+    ``|w_i - 1/N|``."""
+    weights = np.asarray(weights, dtype=float)
+    return 0.5 * np.abs(weights - 1.0 / weights.shape[-1]).sum(axis=-1)
+
+
 def _representation(run: Run) -> dict[str, Any] | None:
-    """MTSACTE: probes and z's std at every recomputation, and mu and w averaged over the run."""
+    """MTSACTE: probes, z's std and w's distance from uniform at every recomputation, and mu and w averaged over
+    the run."""
     records = run.nt_records
     if not records:
         return None
     summary: dict[str, Any] = {"env_steps": [int(r["timesteps"]) for r in records]}
     for key in PROBE_KEYS:
         summary[key] = [None if r.get(key) is None else round(float(r[key]), 6) for r in records]
+    summary["weights_distance"] = distance_from_uniform([r["weights"] for r in records]).round(6).tolist()
     summary["mean_mu"] = np.mean([r["mu"] for r in records], axis=0).round(4).tolist()
     summary["mean_weights"] = np.mean([r["weights"] for r in records], axis=0).round(6).tolist()
     summary["selected_fraction"] = np.mean([r["selected"] for r in records], axis=0).round(4).tolist()
