@@ -1,13 +1,20 @@
 """The eager path against the fast path (a CUDA graph of the update, the replay buffer on the device, one process
-per task), measured in one run; prints one JSON object (``docs/results/gpu_check.json`` on a GPU).
+per task); prints one JSON object (``docs/results/gpu_check.json`` on a GPU). Two parts, run together or one a run:
 
 - ``updates``: updates/s of every variant at each N on synthetic Meta-World-shaped batches (2 x 400 nets, L = 128
   per task), eager and fast timed round-robin;
 - ``end_to_end``: env steps/s of ``learn()`` on MT10 and MT50 for MTSAC and MTSACTE after learning starts, eager
-  (``update_path="eager"``, host buffer, tasks stepped one after another) and fast (the defaults on the device,
-  ``SubprocVecEnv`` when the machine has a core per task), and the hours the paper's budget then takes.
+  (``update_path="eager"``, host buffer, tasks stepped one after another) and fast (``SubprocVecEnv`` when the
+  machine has a core per task), and the hours the paper's budget then takes.
+
+"Fast" is what ``update_path="auto"`` and ``storage="auto"`` pick once the fast path is the default
+(:data:`sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`, set here): the graph where the update's hooks allow it,
+the GPU's replay storage. ``--out`` writes the JSON after every part; a file there from the same device and torch
+keeps the parts this run does not measure, so two runs, one per part, make one file.
 
     python benchmarks/bench_gpu.py --n-tasks 10 20 50 --benchmarks MT10 MT50 --vector-steps 300
+    python benchmarks/bench_gpu.py --parts updates --out gpu_check.json       # then
+    python benchmarks/bench_gpu.py --parts end_to_end --out gpu_check.json    # adds MT10 and MT50 to it
     python benchmarks/bench_gpu.py --n-tasks 10 --benchmarks MT10 --vector-steps 20 --repeats 3  # a dry run
 """
 
@@ -27,11 +34,14 @@ from bench_updates import VARIANTS, fill_buffer, interleaved_medians, learn_rate
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 
 from sb3_mtte import MTSAC, MTSACTE, __version__, make_mt_env
+from sb3_mtte.common import gpu_defaults
 from sb3_mtte.experiments.env_ids import default_vec_env
 
 PAPER_ENV_STEPS = {"MT10": 50_000_000, "MT50": 100_000_000}
 """The paper's MT10 budget (5M env steps per task) and MT50 at 2M per task."""
 PATHS = {"eager": {"update_path": "eager", "replay_buffer_kwargs": {"storage": "host"}}, "fast": {}}
+"""Keyword arguments of each path: the fast path is the defaults, with the fast path as the default."""
+PARTS = ("updates", "end_to_end")
 
 
 def update_models(n_tasks: int, device: str) -> dict[str, object]:
@@ -81,6 +91,7 @@ def bench_end_to_end(benchmark: str, device: str, vector_steps: int) -> dict:
 
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--parts", nargs="+", default=list(PARTS), choices=PARTS, help="what to measure (both)")
     parser.add_argument("--n-tasks", type=int, nargs="+", default=[10, 20, 50], help="task counts of the updates")
     parser.add_argument("--benchmarks", nargs="+", default=["MT10", "MT50"], choices=sorted(PAPER_ENV_STEPS))
     parser.add_argument("--vector-steps", type=int, default=300, help="timed vector steps of each learn()")
@@ -90,6 +101,7 @@ def main(argv: list[str] | None = None) -> dict:
         "--out", default=None, help="also write the JSON here, after every part (a later crash keeps it)"
     )
     args = parser.parse_args(argv)
+    gpu_defaults.FAST_PATH_BY_DEFAULT = True  # "fast": what "auto" then picks
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
     report: dict = {
         "device": device,
@@ -97,14 +109,16 @@ def main(argv: list[str] | None = None) -> dict:
         "torch": th.__version__,
         "sb3_mtte": __version__,
         "cpu_count": os.cpu_count(),
-        "updates": [],
     }
-    for n_tasks in args.n_tasks:
-        report["updates"].append(bench_updates(n_tasks, device, args.repeats))
-        if n_tasks == 10:
-            report["update_speedup_n10"] = report["updates"][-1]["speedup"]["MTSAC-MT"]
-        write(report, args.out)
-    for benchmark in args.benchmarks:
+    report = {**earlier_parts(args.out, report), **report}
+    if "updates" in args.parts:
+        report["updates"] = []
+        for n_tasks in args.n_tasks:
+            report["updates"].append(bench_updates(n_tasks, device, args.repeats))
+            if n_tasks == 10:
+                report["update_speedup_n10"] = report["updates"][-1]["speedup"]["MTSAC-MT"]
+            write(report, args.out)
+    for benchmark in args.benchmarks if "end_to_end" in args.parts else []:
         result = bench_end_to_end(benchmark, device, args.vector_steps)
         report[f"end_to_end_{benchmark}"] = result
         for label, by_path in result["env_steps_per_s"].items():
@@ -112,6 +126,17 @@ def main(argv: list[str] | None = None) -> dict:
         write(report, args.out)
     print(json.dumps(report, indent=1))
     return report
+
+
+def earlier_parts(path: str | None, machine: dict) -> dict:
+    """The report at ``path`` when one of the same device, torch and package is there (its parts are kept), else
+    nothing."""
+    if path is None or not os.path.exists(path):
+        return {}
+    with open(path) as file:
+        earlier = json.load(file)
+    same = all(earlier.get(key) == machine[key] for key in ("device", "device_name", "torch", "sb3_mtte"))
+    return earlier if same else {}
 
 
 def write(report: dict, path: str | None) -> None:

@@ -1,47 +1,82 @@
 #!/usr/bin/env bash
-# The GPU check of the fast path, in one run of under 8 minutes on one H100 that downloads nothing: the CUDA tests
-# (the CUDA graph gives the eager parameters for every variant it holds, the device and pinned replay storages give
-# the host's batches), then benchmarks/bench_gpu.py (eager against fast: updates/s of every variant at N = 10, 20, 50;
-# MT10 and MT50 end to end for MTSAC and MTSACTE; the hours of the paper's budget). Writes ${OUT:-gpu_check}/:
-# tests.log and gpu_check.json (to be copied to docs/results/gpu_check.json).
+# The device check of the fast path (the update as a CUDA graph, the replay buffer on the GPU: opt-in until this has
+# passed on a GPU) on one CUDA GPU, downloading nothing, in two parts, each well inside one 9-minute call on one H100:
+#   updates     the CUDA tests (the graph gives the eager path's parameters, entropy coefficients, mu and w for every
+#               variant it holds; the device and pinned storages give the host's batches; every algorithm trains,
+#               saves and loads on CUDA, on the eager path and on the fast path), then benchmarks/bench_gpu.py's
+#               updates/s of every variant at N = 10, 20, 50, eager against fast;
+#   end_to_end  MT10, then MT50, end to end for MTSAC and MTSACTE, eager against fast, and the hours the paper's
+#               budget takes.
+# With no argument, both (a user with a GPU). Writes ${OUT:-gpu_check}/: tests.log (updates) and gpu_check.json,
+# after every part; a gpu_check.json already there from the same device and torch keeps the other part's figures,
+# so copy the first call's file there before the second. It goes to docs/results/gpu_check.json. Exits non-zero
+# when a test or a measurement fails.
 #
-# The machine needs PyTorch with CUDA and the package's other runtime dependencies. Wheels found in .whl/ (ignored by
-# git; 46 MB for Python 3.12) are installed into /tmp/site first, for a machine without a package registry.
-# Nothing renders: MUJOCO_GL=disable, so no EGL library is needed.
-#   bash benchmarks/gpu_wheels.sh          # with a package registry, into .whl/
-#   bash benchmarks/gpu_check.sh           # on the GPU machine, from the repository root
-# DRY_RUN=1 runs every step on the CPU at toy sizes (a machine without a GPU can check the script).
+# The machine needs PyTorch with CUDA and the wheels in .whl/ (ignored by git): the package's runtime dependencies
+# that its image lacks (benchmarks/gpu_wheels.txt; the image's packages are benchmarks/device_packages.txt) and the
+# package's own wheel, installed into /tmp/site first. Nothing renders: MUJOCO_GL=disable.
+#   bash benchmarks/gpu_wheels.sh             # with a package registry, into .whl/
+#   bash benchmarks/gpu_check.sh updates      # on the GPU machine, from the repository root: the first call
+#   bash benchmarks/gpu_check.sh end_to_end   # the second call
+# DRY_RUN=1 runs every step on the CPU at toy sizes in a venv made from nothing but the GPU machine's packages and
+# the carried wheels (benchmarks/device_venv.py; DRY_RUN_PYTHON and DRY_RUN_TORCH stand in for the machine's Python
+# and torch, default python3.11 and torch==2.13.0; DRY_RUN_VENV is its folder), so that an import the machine
+# cannot satisfy fails here too.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+parts=("$@")
+[ ${#parts[@]} -gt 0 ] || parts=(updates end_to_end)
+for part in "${parts[@]}"; do
+    case "$part" in
+        updates | end_to_end) ;;
+        *) echo "gpu_check.sh: unknown part '$part': give updates, end_to_end or nothing (both)." >&2; exit 2 ;;
+    esac
+done
 out="${OUT:-gpu_check}"
 mkdir -p "$out"
 out="$(cd "$out" && pwd)"
 export MUJOCO_GL="${MUJOCO_GL:-disable}" PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
-if compgen -G ".whl/*.whl" > /dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || exit 1
-    export PYTHONPATH="$PYTHONPATH:/tmp/site"
-fi
 if [ "${DRY_RUN:-0}" = 1 ]; then
-    sizes=(--n-tasks 10 --benchmarks MT10 --vector-steps 20 --repeats 3 --device cpu)
+    export PYTHONPATH="$PWD"  # the checkout and the venv, nothing of this machine's
+    python="$(python3 benchmarks/device_venv.py "${DRY_RUN_VENV:-/tmp/sb3_mtte_device_venv}" \
+        --python "${DRY_RUN_PYTHON:-python3.11}" --torch "${DRY_RUN_TORCH:-torch==2.13.0}" | tail -1)" || exit 1
     tests=(-k "not cuda")
+    updates=(--n-tasks 10 --repeats 3 --device cpu)
+    end_to_end=(--benchmarks MT10 --vector-steps 20 --device cpu)
 else
-    tests=(-k cuda)
+    python=python3
+    if compgen -G ".whl/*.whl" > /dev/null; then
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+            .whl/*.whl || exit 1
+        export PYTHONPATH="$PYTHONPATH:/tmp/site"
+    fi
     nvidia-smi -L
     python3 -c "import torch as th; assert th.cuda.is_available(), 'no CUDA device'" || exit 1
-    sizes=(--n-tasks 10 20 50 --benchmarks MT10 MT50 --vector-steps 300 --repeats 11 --device cuda)
+    tests=(-k cuda)
+    updates=(--n-tasks 10 20 50 --repeats 11 --device cuda)
+    end_to_end=(--benchmarks MT10 MT50 --vector-steps 300 --device cuda)
 fi
-python3 -m pytest -q -rs -p no:cacheprovider "${tests[@]}" tests/test_update_path.py tests/test_buffers.py \
-    tests/test_device.py 2>&1 | tee "$out/tests.log" | tail -6
-tests_status=${PIPESTATUS[0]}
-(cd benchmarks && python3 bench_gpu.py "${sizes[@]}" --out "$out/gpu_check.json") > /dev/null || exit 1
-python3 - "$out/gpu_check.json" <<'EOF'
+bench() {
+    (cd benchmarks && "$python" bench_gpu.py --out "$out/gpu_check.json" "$@") > /dev/null
+}
+status=0
+for part in "${parts[@]}"; do
+    if [ "$part" = updates ]; then
+        "$python" -m pytest -q -rs -p no:cacheprovider "${tests[@]}" tests/test_update_path.py tests/test_buffers.py \
+            tests/test_device.py 2>&1 | tee "$out/tests.log" | tail -6
+        [ "${PIPESTATUS[0]}" = 0 ] || status=1
+        bench --parts updates "${updates[@]}" || exit 1
+    else
+        bench --parts end_to_end "${end_to_end[@]}" || exit 1
+    fi
+done
+"$python" - "$out/gpu_check.json" <<'PY'
 import json, sys
 report = json.load(open(sys.argv[1]))
 print(report["device_name"], report["torch"], "update speedup at N = 10:", report.get("update_speedup_n10"))
-for entry in report["updates"]:
+for entry in report.get("updates", []):
     print(entry["n_tasks"], entry["speedup"])
 for label in ("MTSAC", "MTSACTE"):
-    print(label, report[label])
-EOF
-exit "$tests_status"
+    print(label, report.get(label))
+PY
+exit "$status"

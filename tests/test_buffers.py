@@ -20,8 +20,8 @@ OBS_SPACE = spaces.Box(-np.inf, np.inf, shape=(3,), dtype=np.float32)  # (task, 
 ACT_SPACE = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
 
 
-def make_buffer(n_tasks: int, rows_per_task: int, **kwargs) -> MultiTaskReplayBuffer:
-    return MultiTaskReplayBuffer(n_tasks * rows_per_task, OBS_SPACE, ACT_SPACE, device="cpu", n_envs=n_tasks, **kwargs)
+def make_buffer(n_tasks: int, rows_per_task: int, device: str = "cpu", **kwargs) -> MultiTaskReplayBuffer:
+    return MultiTaskReplayBuffer(n_tasks * rows_per_task, OBS_SPACE, ACT_SPACE, device=device, n_envs=n_tasks, **kwargs)
 
 
 def make_stream(episodes: list[list[float]], n_steps: int, truncated: set[int] = frozenset()) -> dict[str, np.ndarray]:
@@ -349,26 +349,37 @@ def test_built_by_sb3_sac():
 
 
 # ---------------------------------------------------------------------------------------------- storage
+def fed_alike(storage: str, device: str = "cpu") -> tuple[MultiTaskReplayBuffer, MultiTaskReplayBuffer]:
+    """A host buffer and one with ``storage`` on ``device``, both fed the same transitions from the start: 50 rows
+    per task, 110 steps, so both wrap."""
+    host, other = top_k_buffer(), top_k_buffer(storage=storage, device=device)
+    for buf in (host, other):
+        feed(buf, constant_streams(3, 70), t0=TOPK_T)
+    return host, other
+
+
+def assert_samples_the_host_batches(buf: MultiTaskReplayBuffer, host: MultiTaskReplayBuffer, device: str) -> None:
+    """Under the same numpy seed, ``buf`` draws the host's batches, bit for bit, on ``device``."""
+    for method in ("sample", "sample_top_k"):
+        np.random.seed(3)
+        expected = getattr(host, method)(16)
+        np.random.seed(3)
+        for a, b in zip(getattr(buf, method)(16), expected, strict=True):
+            assert a.device.type == device and a.dtype == b.dtype and th.equal(a.cpu(), b)
+
+
 @pytest.mark.parametrize("storage", ["device", "pinned", "host"])
 def test_every_storage_samples_the_host_batches_and_pickles_its_arrays(tmp_path, storage):
     """A copy on the device (here the CPU) is written row by row, gathered by the same numpy draw, made again from
     the arrays after a load, and never pickled; every storage gives the host's batches bit for bit, wrapping
     included."""
-    host, other = top_k_buffer(), top_k_buffer(storage=storage)
-    streams = constant_streams(3, 70)  # 50 rows per task: the buffer wraps
-    for buf in (host, other):
-        feed(buf, streams, t0=TOPK_T)
+    host, other = fed_alike(storage)
     assert (other._device_copy is not None) == (storage == "device")
     save_to_pkl(tmp_path / "buffer.pkl", other)
     loaded = load_from_pkl(tmp_path / "buffer.pkl")
     assert loaded._device_copy is None and loaded.storage == storage
     for buf in (other, loaded):
-        for method in ("sample", "sample_top_k"):
-            np.random.seed(3)
-            expected = getattr(host, method)(16)
-            np.random.seed(3)
-            for a, b in zip(getattr(buf, method)(16), expected, strict=True):
-                assert a.dtype == b.dtype and th.equal(a, b)
+        assert_samples_the_host_batches(buf, host, "cpu")
     if storage == "device":
         assert all(
             th.equal(loaded._device_copy.tensors[k], th.as_tensor(getattr(host, k))) for k in ("rewards", "dones")
@@ -386,12 +397,6 @@ def test_auto_storage_is_the_host_on_a_cpu_and_an_unknown_storage_is_refused():
 @CUDA
 @pytest.mark.parametrize("storage", ["device", "pinned"])
 def test_cuda_storages_sample_the_host_batches(storage):
-    host = top_k_buffer()
-    other = MultiTaskReplayBuffer(150, OBS_SPACE, ACT_SPACE, device="cuda", n_envs=3, top_k=2, storage=storage)
-    for buf in (host, other):
-        feed(buf, constant_streams(3, 70), t0=TOPK_T)
-    np.random.seed(5)
-    expected = host.sample(16)
-    np.random.seed(5)
-    got = other.sample(16)
-    assert all(a.device.type == "cuda" and th.equal(a.cpu(), b) for a, b in zip(got, expected, strict=True))
+    host, other = fed_alike(storage, device="cuda")
+    assert (other._device_copy is not None) == (storage == "device")
+    assert_samples_the_host_batches(other, host, "cuda")

@@ -1,9 +1,11 @@
-"""Every module that the README's commands import comes from a declared runtime dependency of sb3-mtte."""
+"""Every module that the README's commands import comes from a declared runtime dependency of sb3-mtte, and every module
+that the device check imports from the GPU machine's packages or the wheels the check carries."""
 
 from __future__ import annotations
 
 import configparser
 import os
+import re
 import subprocess
 import sys
 from importlib.metadata import PackageNotFoundError, distribution, packages_distributions
@@ -13,6 +15,8 @@ from packaging.requirements import Requirement
 from packaging.utils import canonicalize_name
 
 ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from device_venv import package_names  # noqa: E402
 
 # What `python -m sb3_mtte.zoo train|enjoy|record_video`, `sb3_mtte.evaluate`, `sb3_mtte.record`, `sb3_mtte.plot`
 # and the `sb3-mtte` command import when they run (the `[ray]` extra of `sweep` is imported only when a sweep runs).
@@ -62,23 +66,27 @@ def requirement_closure(name: str) -> set[str]:
     return seen
 
 
-def undeclared_modules() -> list[str]:
-    """Top-level modules installed here only by distributions outside sb3-mtte's requirement closure."""
-    declared = requirement_closure("sb3-mtte")
+def modules_outside(allowed: set[str]) -> list[str]:
+    """Top-level modules installed here only by distributions whose canonical names are not in ``allowed``."""
     return sorted(
         module
         for module, owners in packages_distributions().items()
-        if module not in sys.stdlib_module_names and not {canonicalize_name(d) for d in owners} & declared
+        if module not in sys.stdlib_module_names and not {canonicalize_name(d) for d in owners} & allowed
     )
 
 
+def undeclared_modules() -> list[str]:
+    """Top-level modules installed here only by distributions outside sb3-mtte's requirement closure."""
+    return modules_outside(requirement_closure("sb3-mtte"))
+
+
 def import_as_on_a_plain_install(
-    modules: list[str], blocked: list[str], then: str = "", cwd: Path | None = None
+    modules: list[str], blocked: list[str], then: str = "", cwd: Path | None = None, paths: tuple[Path, ...] = ()
 ) -> subprocess.CompletedProcess:
     """Import ``modules`` in a fresh interpreter where the ``blocked`` top-level modules cannot be found, as after
     ``pip install -e .`` alone (optional imports guarded by try/except still pass, and a probe with
     ``importlib.util.find_spec``, as torch makes for optional modules, finds them absent), then run the code
-    ``then``."""
+    ``then``. ``paths`` go on the module search path after the checkout."""
     code = (
         "import importlib, importlib.util, sys\n"
         f"BLOCKED = set({blocked!r})\n"
@@ -94,7 +102,7 @@ def import_as_on_a_plain_install(
         f"for name in {modules!r}: importlib.import_module(name)\n"
         f"{then}\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}  # this checkout's package from any working folder
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(map(str, (ROOT, *paths)))}  # this checkout's package
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=False, cwd=cwd, env=env)
 
 
@@ -119,3 +127,25 @@ def test_a_missing_dependency_is_caught():
     result = import_as_on_a_plain_install(["sb3_mtte"], ["stable_baselines3"])
     assert result.returncode != 0 and "stable_baselines3" in result.stderr
     assert "pytest" not in requirement_closure("sb3-mtte")
+
+
+# ------------------------------------------------------------------------------------------------ the device check
+def device_check_modules() -> list[str]:
+    """What ``benchmarks/gpu_check.sh`` imports: ``bench_gpu`` (run from benchmarks/), and conftest and the test
+    modules it names."""
+    script = (ROOT / "benchmarks" / "gpu_check.sh").read_text()
+    tests = sorted(set(re.findall(r"tests/(test_\w+)\.py", script)))
+    assert tests, "gpu_check.sh names no test file"
+    return ["bench_gpu", "conftest", *tests]
+
+
+def test_the_device_check_imports_only_what_the_gpu_machine_has():
+    """``bench_gpu.py`` and the tests of the device check import nothing beyond the GPU machine's packages
+    (``benchmarks/device_packages.txt``), the wheels the check carries (``benchmarks/gpu_wheels.txt``) and the
+    package: rl-zoo3, sb3-contrib, huggingface_sb3, optuna, ray, rliable are not there."""
+    allowed = package_names(ROOT / "benchmarks" / "device_packages.txt") | {"sb3-mtte"}
+    blocked = modules_outside(allowed | package_names(ROOT / "benchmarks" / "gpu_wheels.txt"))
+    assert {"rl_zoo3", "sb3_contrib", "huggingface_sb3", "optuna", "rliable"} <= set(blocked)
+    paths = (ROOT / "benchmarks", ROOT / "tests")
+    result = import_as_on_a_plain_install(device_check_modules(), blocked, paths=paths)
+    assert result.returncode == 0, f"the device check needs a package the GPU machine lacks:\n{result.stderr[-2000:]}"

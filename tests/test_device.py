@@ -1,5 +1,5 @@
 """``device="auto"`` picks CUDA when present, else the CPU; on a GPU machine every algorithm trains, saves and loads
-there (these CUDA tests run wherever a GPU is present)."""
+there, on the default (eager) path and on the opt-in fast path (these CUDA tests run wherever a GPU is present)."""
 
 from __future__ import annotations
 
@@ -15,6 +15,10 @@ def test_auto_device_is_cuda_when_present_else_cpu() -> None:
     assert model.device.type == ("cuda" if th.cuda.is_available() else "cpu")
 
 
+FAST_PATH = {"update_path": "cuda_graph", "replay_buffer_kwargs": {"storage": "device"}}
+"""The opt-in fast path: the update replayed as a CUDA graph, the replay buffer's transitions on the GPU."""
+
+
 @CUDA
 @pytest.mark.parametrize(
     "cls, policy, kwargs",
@@ -24,6 +28,8 @@ def test_auto_device_is_cuda_when_present_else_cpu() -> None:
         (MTSAC, "MOOREPolicy", {}),
         (MTSAC, "PaCoPolicy", {}),
         (MTSACTE, "MlpPolicy", {}),
+        (MTSAC, "MlpPolicy", FAST_PATH),
+        (MTSACTE, "MlpPolicy", FAST_PATH),
     ],
 )
 def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict) -> None:
@@ -34,6 +40,9 @@ def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict
     model = cls(policy, make_mt_env("toy-conflict", seed=0), **base, **kwargs)
     model.learn(80)
     assert all(p.device.type == "cuda" for p in model.policy.parameters())
+    fast = kwargs is FAST_PATH
+    assert model.resolved_update_path() == ("cuda_graph" if fast else "eager")  # "auto" is eager until it has run
+    assert model.replay_buffer._storage() == ("device" if fast else "host")
     model.save(tmp_path / "model")
     loaded = cls.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cuda")
     obs = model.get_env().reset()

@@ -1,7 +1,10 @@
 """The update's two paths (:mod:`sb3_mtte.mtsac.update_path`): the CUDA-graph path runs the eager update's code on
-static inputs, with tensor learning rates and the host's reads deferred to the logger's dump. On the CPU it runs
-without the graph (everything else of the path) and gives the eager path's parameters bit for bit; on CUDA, with
-the graph, within float tolerance."""
+static inputs, with tensor learning rates and the host's reads deferred to the logger's dump.
+
+On the CPU the tests run the path minus capture (``capture=False``: the static inputs, the warm-up calls, the tensor
+learning rates and the deferred reads), which gives the eager path's parameters bit for bit. That proves the
+path's bookkeeping, not the graph: the side stream, the capturable optimizers, ``torch.cuda.CUDAGraph`` and its
+replay run only in the CUDA tests, which compare the graph with the eager path within float tolerance."""
 
 from __future__ import annotations
 
@@ -16,8 +19,10 @@ from conftest import CUDA
 from variant_statistics import CAPTURABLE_CASES, CASES, HOST_READING, VECTOR_STEPS, build_case, final_tensors
 
 from sb3_mtte import MTSAC, make_mt_env
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback
+from sb3_mtte.common import gpu_defaults
 from sb3_mtte.common.captured_update import CapturedUpdate, prepare_for_capture
+from sb3_mtte.common.device_storage import resolve_storage
+from sb3_mtte.common.evaluation import MultiTaskEvalCallback
 
 
 def graph_path_without_graph(model):
@@ -31,7 +36,7 @@ def trained(model, steps: int = 4 * VECTOR_STEPS, **learn_kwargs):
 
 
 @pytest.mark.parametrize("case", list(CAPTURABLE_CASES))
-def test_the_graph_path_gives_the_eager_parameters_on_the_cpu(case):
+def test_the_graph_path_minus_capture_gives_the_eager_parameters_on_the_cpu(case):
     eager = trained(build_case(case))
     assert eager.resolved_update_path() == "eager"
     other = trained(graph_path_without_graph(build_case(case)))
@@ -155,16 +160,41 @@ def test_a_new_batch_size_is_warmed_up_again_before_its_capture():
     assert on_static_inputs == [False, False, False, True, True, False, False, False, True]
 
 
-def test_auto_takes_the_graph_on_cuda_unless_the_update_reads_the_host(monkeypatch):
+def test_auto_takes_the_eager_update_and_the_host_buffer_on_cuda_until_the_fast_path_has_run(monkeypatch):
+    """No default that has never run on a GPU: ``"auto"`` is eager and the host's buffer on CUDA too; with the fast
+    path as the default, the graph wherever the update's hooks allow it, and the GPU's buffer where it fits."""
+    assert not gpu_defaults.FAST_PATH_BY_DEFAULT
+    cuda = th.device("cuda")
     for case in CASES:
         model = build_case(case)
-        monkeypatch.setattr(model, "device", th.device("cuda"))
-        expected = "eager" if case in HOST_READING else "cuda_graph"
-        assert model.resolved_update_path() == expected, case
+        monkeypatch.setattr(model, "device", cuda)
+        assert model.resolved_update_path() == "eager", case
+    assert resolve_storage("auto", cuda, n_bytes=1) == "host"
+    monkeypatch.setattr(gpu_defaults, "FAST_PATH_BY_DEFAULT", True)
+    monkeypatch.setattr(th.cuda, "mem_get_info", lambda device: (100, 200))
+    assert resolve_storage("auto", cuda, n_bytes=50) == "device" and resolve_storage("auto", cuda, 51) == "pinned"
+    assert resolve_storage("auto", th.device("cpu"), n_bytes=1) == "host"
+    for case in CASES:
+        model = build_case(case)
+        assert model.resolved_update_path() == "eager", case  # the CPU
+        monkeypatch.setattr(model, "device", cuda)
+        assert model.resolved_update_path() == ("eager" if case in HOST_READING else "cuda_graph"), case
         if case in HOST_READING:
             model.update_path = "cuda_graph"
             with pytest.raises(ValueError, match="reads the GPU on the host every step"):
                 model.resolved_update_path()
+
+
+def test_the_graph_path_makes_its_optimizers_capturable_before_its_warm_up():
+    """The warm-up's eager updates take the optimizers' capturable branch, as the graph and the CUDA test's eager
+    reference do from their first step; without capture (the CPU) the optimizers stay plain."""
+    model = build_case("mt")
+    optimizers = model._optimizers()
+    assert len(optimizers) == 3  # the actor's, the critic's, the entropy coefficients'
+    CapturedUpdate(model._update, model._optimizers, th.device("cuda"), capture=True)  # nothing runs yet
+    assert all(group["capturable"] for optimizer in optimizers for group in optimizer.param_groups)
+    CapturedUpdate(model._update, model._optimizers, th.device("cpu"), capture=False)
+    assert not any(group["capturable"] for optimizer in optimizers for group in optimizer.param_groups)
 
 
 def test_bad_update_paths_are_refused():
@@ -174,10 +204,42 @@ def test_bad_update_paths_are_refused():
         MTSAC("MlpPolicy", make_mt_env("toy-conflict", seed=0), update_path="cuda_graph", device="cpu")
 
 
+SMALL_TENSORS = ("ent_coef", "task_weights", "transfer_matrix")
+"""Tensors of :func:`final_tensors` compared each on its own: in the policy's sum their error would vanish."""
+
+
 def relative_distance(a: dict[str, np.ndarray], b: dict[str, np.ndarray], initial: dict[str, np.ndarray]) -> float:
+    """||a - b|| over how far training moved b from ``initial``, over the keys of ``initial``."""
     error = sum(float(np.sum((a[k] - b[k]) ** 2)) for k in initial)
-    moved = sum(float(np.sum((a[k] - initial[k]) ** 2)) for k in initial)
-    return (error / moved) ** 0.5
+    moved = sum(float(np.sum((b[k] - initial[k]) ** 2)) for k in initial)
+    return (error / moved) ** 0.5 if moved else (0.0 if error == 0 else np.inf)
+
+
+def assert_near_eager(got: dict, expected: dict, initial: dict, tolerance: float) -> None:
+    """The graph's final tensors against the eager path's: the policy's tensors together, the entropy coefficients,
+    MTSACTE's w and transfer matrix each within ``tolerance`` of how far training moved them; mu (counts) exactly."""
+    assert got.keys() == expected.keys() == initial.keys()
+    groups = {"policy": [k for k in initial if k not in (*SMALL_TENSORS, "mu")]}
+    groups |= {k: [k] for k in SMALL_TENSORS if k in initial}
+    for name, keys in groups.items():
+        distance = relative_distance({k: got[k] for k in keys}, expected, {k: initial[k] for k in keys})
+        assert distance < tolerance, f"{name}: {distance:.2e} of the movement"
+    if "mu" in initial:
+        assert np.array_equal(got["mu"], expected["mu"]), "mu"
+
+
+def test_the_comparison_with_the_eager_path_reads_the_entropy_coefficients_mu_and_w():
+    rng = np.random.default_rng(0)
+    initial = {"actor.weight": np.zeros(1000), "ent_coef": np.ones(4), "mu": np.zeros(4)}
+    initial |= {"task_weights": np.full(4, 0.25), "transfer_matrix": np.zeros((4, 4))}
+    expected = {k: v + rng.standard_normal(v.shape) * (1 if k != "mu" else 0) for k, v in initial.items()}
+    expected["mu"] = np.array([0.0, 1.0, 2.0, 1.0])
+    assert_near_eager({k: v.copy() for k, v in expected.items()}, expected, initial, 1e-3)
+    for key in ("actor.weight", *SMALL_TENSORS, "mu"):  # each off by a hundredth of its movement, mu by one
+        got = {k: v.copy() for k, v in expected.items()}
+        got[key] = got[key] + (1 if key == "mu" else 0.01 * (expected[key] - initial[key]))
+        with pytest.raises(AssertionError, match=key if key in (*SMALL_TENSORS, "mu") else "policy"):
+            assert_near_eager(got, expected, initial, 1e-3)
 
 
 @CUDA
@@ -189,14 +251,14 @@ def relative_distance(a: dict[str, np.ndarray], b: dict[str, np.ndarray], initia
     ],
 )
 def test_the_cuda_graph_gives_the_eager_parameters_on_cuda(case, overrides):
-    """The eager reference runs its optimizers as the graph does (capturable, float32 learning rates): their bias
-    corrections then round alike, so that MTSACTE's sign counts cannot flip on rounding alone."""
+    """The eager reference runs its optimizers as the graph does from its first step (capturable, float32 learning
+    rates): their bias corrections then round alike, so that MTSACTE's sign counts cannot flip on rounding alone."""
     eager_model = build_case(case, device="cuda", update_path="eager", **overrides)
     for optimizer in eager_model._optimizers():
         prepare_for_capture(optimizer, capturable=True)
-    initial = {k: v.detach().cpu().double().numpy() for k, v in eager_model.policy.state_dict().items()}
+    initial = final_tensors(eager_model)
     eager = final_tensors(trained(eager_model))
-    graph_model = trained(build_case(case, device="cuda", **overrides))
+    graph_model = trained(build_case(case, device="cuda", update_path="cuda_graph", **overrides))
     assert graph_model.resolved_update_path() == "cuda_graph" and graph_model._update_runner.graphs
     assert len(graph_model._update_runner.graphs) == (2 if overrides else 1)
-    assert relative_distance(final_tensors(graph_model), eager, initial) < (1e-2 if case == "softmod" else 1e-3)
+    assert_near_eager(final_tensors(graph_model), eager, initial, 1e-2 if case == "softmod" else 1e-3)

@@ -46,14 +46,16 @@ def set_learning_rate(optimizers: Sequence[th.optim.Optimizer], learning_rate: f
 class CapturedUpdate:
     """Run ``update(batch, polyak)`` as a CUDA graph.
 
-    The first :attr:`WARMUP` calls run eagerly on a side stream (cuBLAS and the caching allocator settle; they are
-    real updates). The next call copies its batch into static tensors, captures one graph per value of ``polyak``
-    (capturing runs nothing) and replays it; every later call copies its batch and replays. Outputs are cloned out
-    of the graph's memory, which the next replay overwrites.
+    The optimizers are made capturable at once, so the first :attr:`WARMUP` calls, which run eagerly on a side
+    stream (cuBLAS and the caching allocator settle; they are real updates), take the same Adam steps as the graph
+    (an optimizer's capturable and plain branches round its bias correction differently). The next call copies its
+    batch into static tensors, captures one graph per value of ``polyak`` (capturing runs nothing) and replays it;
+    every later call copies its batch and replays. Outputs are cloned out of the graph's memory, which the next
+    replay overwrites.
 
     :param update: the eager update function: ``(batch, polyak) -> stats``; it must not read a device tensor on the
         host, nor branch on one.
-    :param get_optimizers: the optimizers the update steps (made capturable at capture).
+    :param get_optimizers: the optimizers the update steps (made capturable here when ``capture``).
     :param device: the CUDA device of the update (its streams and graphs are made there).
     :param capture: False runs everything but the graph (static inputs, tensor learning rates): the CPU's view of
         this path, for tests.
@@ -68,13 +70,13 @@ class CapturedUpdate:
         device: th.device,
         capture: bool = True,
     ) -> None:
-        self.update, self.get_optimizers, self.device, self.capture = update, get_optimizers, device, capture
+        self.update, self.device, self.capture = update, device, capture
         self.warmup_calls = 0
         self.static_batch: NamedTuple | None = None
         self.graphs: dict[bool, th.cuda.CUDAGraph] = {}
         self.outputs: dict[bool, Stats] = {}
         for optimizer in get_optimizers():
-            prepare_for_capture(optimizer, capturable=False)
+            prepare_for_capture(optimizer, capturable=capture)
 
     def __call__(self, batch: NamedTuple, polyak: bool) -> Stats:
         if not self.capture:
@@ -112,8 +114,6 @@ class CapturedUpdate:
         return stats
 
     def _capture(self, polyak: bool) -> None:
-        for optimizer in self.get_optimizers():
-            prepare_for_capture(optimizer, capturable=True)
         graph = th.cuda.CUDAGraph()
         with th.cuda.graph(graph):
             self.outputs[polyak] = self.update(self.static_batch, polyak)

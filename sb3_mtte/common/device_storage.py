@@ -12,9 +12,12 @@ from __future__ import annotations
 import numpy as np
 import torch as th
 
+from sb3_mtte.common import gpu_defaults
+
 STORAGES = ("auto", "host", "pinned", "device")
 DEVICE_SHARE = 0.5
-"""``"auto"`` keeps the buffer on the GPU when it takes at most this share of the GPU's free memory."""
+"""``"auto"`` with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT` keeps the buffer on the GPU when it takes
+at most this share of the GPU's free memory."""
 
 
 def check_storage(storage: str) -> None:
@@ -24,14 +27,16 @@ def check_storage(storage: str) -> None:
 
 
 def resolve_storage(storage: str, device: th.device, n_bytes: int) -> str:
-    """``"host"``, ``"pinned"`` or ``"device"`` for a buffer of ``n_bytes`` on ``device``.
+    """``"host"``, ``"pinned"`` or ``"device"`` for a buffer of ``n_bytes`` on ``device``: ``"auto"`` is the host
+    (on CUDA with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`, the GPU where the buffer fits, else
+    pinned).
 
     :raises ValueError: for an unknown storage.
     """
     check_storage(storage)
     if storage != "auto":
         return storage
-    if device.type != "cuda":
+    if device.type != "cuda" or not gpu_defaults.FAST_PATH_BY_DEFAULT:
         return "host"
     free, _ = th.cuda.mem_get_info(device)
     return "device" if n_bytes <= DEVICE_SHARE * free else "pinned"

@@ -5,8 +5,9 @@
 - :mod:`~sb3_mtte.experiments.env_ids`: benchmark env ids and the one-task-per-sub-env VecEnv;
 - :mod:`~sb3_mtte.experiments.manager`: rl-zoo3's ``ExperimentManager`` for multi-task runs;
 - :mod:`~sb3_mtte.experiments.launcher`: ``train`` (rl-zoo's, with resume);
-- :mod:`~sb3_mtte.experiments.playback`, :mod:`~sb3_mtte.experiments.video`: ``enjoy`` and ``record_video`` (its
-  videos streamed task by task);
+- :mod:`~sb3_mtte.experiments.playback`, :mod:`~sb3_mtte.experiments.video`,
+  :mod:`~sb3_mtte.experiments.episode_reporter`: ``enjoy`` and ``record_video`` (its videos streamed task by task),
+  the episode report of ``enjoy``;
 - :mod:`~sb3_mtte.experiments.checkpoints`, :mod:`~sb3_mtte.experiments.callbacks`,
   :mod:`~sb3_mtte.experiments.run_logs`: resumable checkpoints, training callbacks, the logs of a run folder;
 - :mod:`~sb3_mtte.experiments.run_info`: ``run_info.json``;

@@ -21,7 +21,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from sb3_mtte.envs import TOY_BENCHMARKS, make_env_fns
 from sb3_mtte.envs.metaworld_envs import is_task_list, metaworld_task_names
 from sb3_mtte.envs.toy import parse_toy_name
-from sb3_mtte.experiments.callbacks import EpisodeReporter
+from sb3_mtte.experiments.episode_reporter import EpisodeReporter
 
 BUDGET_SUFFIXES = ("smoke", "cpu", "100k")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""

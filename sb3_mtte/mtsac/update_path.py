@@ -1,4 +1,5 @@
-"""How MTSAC runs its updates: eagerly, or replayed as a CUDA graph (the default on CUDA), and what the host reads.
+"""How MTSAC runs its updates: eagerly, or replayed as a CUDA graph (opt-in on CUDA until it has run on a GPU:
+:mod:`~sb3_mtte.common.gpu_defaults`), and what the host reads.
 
 Both paths run one function, :meth:`UpdatePathMixin._update` (the SAC update of Eq. 9 and 15-16, then Polyak); the
 CUDA-graph path records its kernels once and replays them (:class:`~sb3_mtte.common.captured_update.CapturedUpdate`),
@@ -13,6 +14,7 @@ from typing import Any
 
 import torch as th
 
+from sb3_mtte.common import gpu_defaults
 from sb3_mtte.common.captured_update import CapturedUpdate, set_learning_rate
 from sb3_mtte.common.update_hooks import UpdateHook
 from sb3_mtte.common.update_monitor import Stats, UpdateMonitor
@@ -42,12 +44,14 @@ class UpdatePathMixin:
     target_update_interval: int
 
     def resolved_update_path(self) -> str:
-        """``"eager"`` or ``"cuda_graph"``: ``"auto"`` takes the graph on CUDA when the update's hooks allow it.
+        """``"eager"`` or ``"cuda_graph"``: ``"auto"`` is eager (it takes the graph on CUDA, when the update's hooks
+        allow it, only with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`).
 
         :raises ValueError: for ``"cuda_graph"`` off CUDA or with hooks that read the GPU on the host.
         """
         if self.update_path == "auto":
-            return "cuda_graph" if self.device.type == "cuda" and self.update_hook.capturable else "eager"
+            fast = gpu_defaults.FAST_PATH_BY_DEFAULT and self.device.type == "cuda" and self.update_hook.capturable
+            return "cuda_graph" if fast else "eager"
         if self.update_path == "cuda_graph" and self.device.type != "cuda":
             raise ValueError(f"update_path='cuda_graph' needs a CUDA device, got {self.device}: use 'auto' or 'eager'.")
         if self.update_path == "cuda_graph" and not self.update_hook.capturable:
