@@ -164,6 +164,7 @@ def test_train_takes_the_package_algorithms_only(tmp_path, flags, expected):
 def test_train_hyperparameter_mistakes_end_with_one_line(tmp_path, algo, params, expected):
     message = train_error(tmp_path, "-n", "40", "-params", params, algo=algo)
     assert re.search(expected, message), message
+    assert not list((tmp_path / algo).glob(f"{ENV}_*")), "a refused start left a run folder"
 
 
 def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, monkeypatch):

@@ -11,7 +11,6 @@ import argparse
 import contextlib
 import difflib
 import importlib.util
-import os
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -21,9 +20,9 @@ import rl_zoo3
 import rl_zoo3.train
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
-from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.checkpoints import latest_run_with_model
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
@@ -73,15 +72,15 @@ def has_flag(argv: Sequence[str], *names: str) -> bool:
 
 
 def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
-    """The latest run folder ``<log_folder>/<algo>/<env>_<id>``."""
-    env_name = EnvironmentName(env_id)
-    exp_id = get_latest_run_id(os.path.join(log_folder, algo), env_name)
-    if exp_id == 0:
+    """The latest run folder ``<log_folder>/<algo>/<env>_<id>`` that holds a model or checkpoint (else a started
+    run: :func:`~sb3_mtte.experiments.checkpoints.latest_run_with_model`)."""
+    run_dir = latest_run_with_model(log_folder, algo, str(EnvironmentName(env_id)))
+    if run_dir is None:
         raise SystemExit(
             f"No run of {algo} on {env_id} in {log_folder}/{algo}/ to resume: give -f of your runs, or --resume "
             "RUN_DIR."
         )
-    return Path(log_folder) / algo / f"{env_name}_{exp_id}"
+    return run_dir
 
 
 def _launcher_parser() -> argparse.ArgumentParser:

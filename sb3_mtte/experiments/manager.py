@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import shutil
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -225,7 +226,17 @@ class MultiTaskExperimentManager(ExperimentManager):
     # ---- set-up
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         """rl-zoo's set-up, or a resumed run's; a ``ValueError`` that this package or rl-zoo raises on the
-        hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback."""
+        hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback.
+        A new run whose set-up fails leaves no folder behind (later commands would take it for the latest run)."""
+        new_folder = self.launch.resume_dir is None and not os.path.exists(self.save_path)
+        try:
+            return self._setup_experiment()
+        except BaseException:
+            if new_folder:
+                shutil.rmtree(self.save_path, ignore_errors=True)
+            raise
+
+    def _setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         try:
             if self.launch.resume_dir is not None:
                 return self._setup_resume()

@@ -13,11 +13,11 @@ import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
-from rl_zoo3.utils import get_latest_run_id, get_model_path
+from rl_zoo3.utils import get_model_path
 
 from sb3_mtte.envs import make_env_fns, make_mt_env
 from sb3_mtte.experiments import output_folder_error, run_info
-from sb3_mtte.experiments.checkpoints import load_model
+from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
     benchmark_help,
@@ -31,10 +31,11 @@ from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
 
 
 def _latest_run_id(args: argparse.Namespace) -> int:
-    """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder``, announced as rl-zoo does;
-    exits with one line when there is none."""
+    """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder`` that holds a model, announced
+    as rl-zoo does; exits with one line when there is none."""
     env_name = EnvironmentName(args.env)
-    exp_id = get_latest_run_id(os.path.join(args.folder, args.algo), env_name)
+    run_dir = latest_run_with_model(args.folder, args.algo, str(env_name))
+    exp_id = 0 if run_dir is None else int(run_dir.name.rsplit("_", 1)[1])
     if exp_id == 0:
         raise SystemExit(
             f"No run folder {os.path.join(args.folder, args.algo, f'{env_name}_<id>')}: give -f, --algo, --env "
