@@ -180,6 +180,32 @@ def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, mo
         main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-freq", "-1", *TINY])
 
 
+@pytest.mark.parametrize(
+    ("env", "kwarg", "expected"),
+    [
+        (
+            ENV,
+            "max_episode_step:10",
+            "max_episode_step is not an env keyword argument of 'toy-conflict': did you mean "
+            "max_episode_steps? valid: n_tasks, max_episode_steps, render_mode.",
+        ),
+        (
+            "MT10-smoke",
+            "reward_fn_version:'v1'",
+            "reward_fn_version is not an env keyword argument of 'MT10': did you "
+            "mean reward_function_version? valid: n_tasks, max_episode_steps,",
+        ),
+    ],
+)
+def test_a_misspelled_env_kwargs_key_names_the_nearest_one(tmp_path, env, kwarg, expected):
+    with pytest.raises(SystemExit) as exit_info:
+        main(
+            ["train", "--algo", "mtsac_mt", "--env", env, "-f", str(tmp_path), "-n", "40", *TINY, "--env-kwargs", kwarg]
+        )
+    assert str(exit_info.value.code).startswith(f"--env-kwargs: {expected}")
+    assert not list(tmp_path.rglob("*.csv"))
+
+
 @pytest.mark.parametrize("episodes", ["0", "-2"])
 def test_train_refuses_evaluations_of_no_episode_before_it_starts(tmp_path, episodes):
     with pytest.raises(SystemExit) as exit_info:

@@ -27,7 +27,6 @@ video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
-import difflib
 import re
 import sys
 import textwrap
@@ -37,6 +36,7 @@ from typing import Any
 
 import rl_zoo3.enjoy
 
+from sb3_mtte.common.utils import nearest_names
 from sb3_mtte.experiments import evaluate, plot, records, sweep
 from sb3_mtte.experiments.env_ids import register_standard_env_ids
 from sb3_mtte.experiments.launcher import train
@@ -80,7 +80,7 @@ def plain_text(doc: str) -> str:
 
 def unknown_command_message(prog: str, command: str, commands: Sequence[str]) -> str:
     """One line naming an unknown command, the nearest known one and every command."""
-    close = difflib.get_close_matches(command, commands, n=1)
+    close = nearest_names(command, commands)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"{prog}: unknown command {command!r}{hint}; commands: {', '.join(commands)} ({prog} --help for more)"
 

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import difflib
 import importlib.util
 import sys
 from collections.abc import Iterator, Sequence
@@ -21,6 +20,7 @@ import rl_zoo3.train
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
 
+from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
@@ -95,9 +95,10 @@ def check_algo(algo: str | None) -> str:
     if algo is None:
         raise SystemExit(f"--algo is required: one of {' '.join(keys)}.")
     if algo not in keys:
-        close = difflib.get_close_matches(algo, keys, n=1)
-        hint = f"did you mean {close[0]}? " if close else ""
-        raise SystemExit(f"--algo {algo} is not an algorithm of sb3_mtte: {hint}one of {' '.join(keys)}.")
+        hint = did_you_mean(algo, keys)
+        raise SystemExit(
+            f"--algo {algo} is not an algorithm of sb3_mtte: {hint + ' ' if hint else ''}one of {' '.join(keys)}."
+        )
     return algo
 
 

@@ -27,7 +27,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
-from sb3_mtte.envs import reward_function_version
+from sb3_mtte.envs import check_env_kwargs, reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
@@ -83,14 +83,15 @@ class MultiTaskExperimentManager(ExperimentManager):
         self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
         self.eval_callback: ZooEvalCallback | None = None
         self._eval_env: VecEnv | None = None
-        self._check_reward_function_version()
+        self._check_env_kwargs()
 
-    def _check_reward_function_version(self) -> None:
-        """Refuse a ``reward_function_version`` Meta-World lacks (or one given to a toy) before any folder is made."""
+    def _check_env_kwargs(self) -> None:
+        """Refuse an env keyword the benchmark lacks (the nearest valid one named), or a ``reward_function_version``
+        Meta-World lacks (or one given to a toy), before any folder is made."""
         for flag, env_kwargs in (("--env-kwargs", self.env_kwargs), ("--eval-env-kwargs", self.eval_env_kwargs)):
             try:
-                reward_function_version(self.benchmark, env_kwargs)
-            except ValueError as error:
+                check_env_kwargs(self.benchmark, env_kwargs)
+            except (TypeError, ValueError) as error:
                 raise SystemExit(f"{flag}: {error}") from None
 
     def _restore_run_args(self) -> None:
