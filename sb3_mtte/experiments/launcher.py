@@ -21,7 +21,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
 
 from sb3_mtte.common.utils import did_you_mean
-from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments import command_prog, run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
@@ -217,10 +217,11 @@ def run_zoo_train(zoo_argv: list[str], launch: LaunchOptions) -> None:
     def make_manager(*args: Any, **kwargs: Any) -> MultiTaskExperimentManager:
         return MultiTaskExperimentManager(*args, launch=launch, **kwargs)
 
+    prog = command_prog("train", "sb3_mtte.zoo train")
     with (
         patched(sys, "argv", [f"{sys.argv[0]} train", *zoo_argv]),
         patched(rl_zoo3.train, "ExperimentManager", make_manager),
-        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True),
+        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True, prog=prog),
     ):
         rl_zoo3.train.train()
 

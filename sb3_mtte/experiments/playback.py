@@ -16,7 +16,7 @@ from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import get_model_path
 
 from sb3_mtte.envs import make_env_fns, make_mt_env
-from sb3_mtte.experiments import output_folder_error, run_info
+from sb3_mtte.experiments import command_prog, output_folder_error, run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
@@ -125,7 +125,8 @@ def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
 
 
 def _record_video_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sb3-mtte record_video", parents=[_model_parser("record_video")])
+    prog = command_prog("record_video", "sb3_mtte.zoo record_video")
+    parser = argparse.ArgumentParser(prog=prog, parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task")
