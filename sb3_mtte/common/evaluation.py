@@ -20,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.update_monitor import record_train_stats
-from sb3_mtte.common.utils import check_multitask_env, get_task_names, task_log_key
+from sb3_mtte.common.utils import check_multitask_env, check_positive_int, get_task_names, task_log_key
 
 
 class Predictor(Protocol):
@@ -188,11 +188,7 @@ class MultiTaskEvalCallback(BaseCallback):
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose=verbose)
-        if isinstance(episodes_per_task, bool) or not isinstance(episodes_per_task, int) or episodes_per_task < 1:
-            raise ValueError(
-                f"episodes_per_task must be a positive int, got {episodes_per_task!r}; to evaluate less often, raise "
-                "eval_freq (--eval-freq -1 turns the zoo's evaluation off)."
-            )
+        check_positive_int("episodes_per_task (the zoo's --eval-episodes)", episodes_per_task, "10")
         if not isinstance(eval_env, VecEnv):
             from sb3_mtte.envs import make_mt_env
 

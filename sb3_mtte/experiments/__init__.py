@@ -42,6 +42,19 @@ def closed_pipe_exit(main: Callable[[], Any]) -> Any:
         raise SystemExit(1) from None
 
 
+def device_error(flag: str, device: str | None) -> str | None:
+    """Why ``device`` is no torch device (``--device gpu``), or None: SB3's ``auto`` and any name torch takes."""
+    import torch as th
+
+    if device in (None, "auto"):
+        return None
+    try:
+        th.device(device)
+    except (RuntimeError, TypeError):
+        return f"{flag} {device}: not a torch device; give auto, cpu, cuda or cuda:<index>."
+    return None
+
+
 def output_folder_error(flag: str, path: str | Path) -> str | None:
     """Why ``path`` cannot be the output folder of ``flag`` (an existing file), or None."""
     return f"{flag} {path} is a file: give a folder." if Path(path).is_file() else None

@@ -35,7 +35,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
-from sb3_mtte.experiments import command_prog, output_file_error, run_info
+from sb3_mtte.experiments import command_prog, device_error, output_file_error, run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 
@@ -257,6 +257,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     out_error = None if args.out is None else output_file_error("--out", args.out)
+    out_error = device_error("--device", args.device) or out_error
     if out_error:
         parser.exit(2, f"{parser.prog}: error: {out_error}\n")
     try:

@@ -21,7 +21,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
 
 from sb3_mtte.common.utils import did_you_mean
-from sb3_mtte.experiments import command_prog, run_info
+from sb3_mtte.experiments import command_prog, device_error, run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
@@ -193,6 +193,9 @@ def train(argv: Sequence[str]) -> None:
     algo = check_algo(flag_value(zoo_argv, "--algo"))
     check_budget(zoo_argv)
     check_conf_file(zoo_argv)
+    problem = device_error("--device", flag_value(zoo_argv, "--device"))
+    if problem:
+        raise SystemExit(problem)
     register_algos()
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
     if ours.resume is None and not has_flag(zoo_argv, "--vec-env"):  # a resumed run keeps its own (args.yml)

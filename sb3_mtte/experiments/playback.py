@@ -16,7 +16,7 @@ from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import get_model_path
 
 from sb3_mtte.envs import make_env_fns, make_mt_env
-from sb3_mtte.experiments import command_prog, output_folder_error, run_info
+from sb3_mtte.experiments import command_prog, device_error, output_folder_error, run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
@@ -99,6 +99,9 @@ def enjoy(argv: Sequence[str]) -> None:
         _run_zoo_enjoy(argv, MultiTaskVecEnvFactory(1))
     if env_id is None or not register_env_id(env_id):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+    problem = device_error("--device", flag_value(argv, "--device"))
+    if problem:
+        raise SystemExit(problem)
     if not has_flag(argv, "-f", "--folder"):
         argv += ["-f", "logs"]
     n_tasks = env_id_n_tasks(env_id)
@@ -157,6 +160,9 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         os.environ["MUJOCO_GL"] = "egl"
     if not register_env_id(args.env):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+    problem = device_error("--device", args.device)
+    if problem:
+        raise SystemExit(problem)
     counts = (("--episodes", args.episodes), ("-n", args.n_timesteps))
     too_few = [f"{flag} {n}" for flag, n in counts if n is not None and n < 1]
     if too_few:

@@ -192,6 +192,8 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     problem = output_folder_error("--out", opts.out)
     if missing:
         problem = f"{missing[0]}: no such folder; give folders of runs (train's -f) or records"
+    if not 0 <= args.seed < 2**32:
+        problem = f"--seed {args.seed}: the bootstrap seed is an int from 0 to 2**32 - 1, e.g. --seed 0"
     if problem:
         parser.exit(2, f"{parser.prog}: error: {problem}\n")
     try:
