@@ -125,11 +125,11 @@ def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
     assert message == 'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
 
 
-@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"]])
+@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"], ["--width", "0"]])
 def test_record_video_refuses_no_episode_or_no_step(tmp_path, flags):
     with pytest.raises(SystemExit) as exit_info:
         zoo_main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *flags])
-    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video)."
+    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video, pixels)."
 
 
 @pytest.mark.parametrize("episodes", [0, 2.5])

@@ -191,3 +191,19 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
         env.close()
     for i, task in enumerate(tasks):
         np.testing.assert_array_equal(np.stack([step[i] for step in frames]), np.stack(alone[i]), err_msg=task)
+
+
+def test_a_video_is_written_under_a_temporary_name_and_renamed_when_complete(tmp_path):
+    """A video stopped midway leaves nothing under its name (and no partial file); a complete one is renamed."""
+    from sb3_mtte.experiments.video import write_video
+
+    def frames(n: int, fail: bool):
+        for _ in range(n):
+            yield np.zeros((16, 16, 3), dtype=np.uint8)
+        if fail:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_video(frames(3, fail=True), tmp_path / "stopped.mp4", fps=10)
+    assert write_video(frames(3, fail=False), tmp_path / "whole.mp4", fps=10)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["whole.mp4"]

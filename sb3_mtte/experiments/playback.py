@@ -15,7 +15,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import get_model_path
 
-from sb3_mtte.envs import make_env_fns, make_mt_env
+from sb3_mtte.envs import check_env_kwargs, make_env_fns, make_mt_env
 from sb3_mtte.experiments import command_prog, device_error, output_folder_error, run_info
 from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
 from sb3_mtte.experiments.env_ids import (
@@ -132,7 +132,9 @@ def _record_video_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog=prog, parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
-    parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task (default 1)")
+    parser.add_argument("--width", type=int, default=None, help="frame width in pixels (Meta-World; default 480)")
+    parser.add_argument("--height", type=int, default=None, help="frame height in pixels (Meta-World; default 480)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions (default: deterministic)")
     parser.add_argument("--seed", type=int, default=None, help="benchmark seed (default: the run's)")
     parser.add_argument("--env-kwargs", type=str, nargs="+", default=None, help="key:value env keyword arguments")
@@ -163,10 +165,15 @@ def record_video(argv: Sequence[str]) -> list[Path]:
     problem = device_error("--device", args.device)
     if problem:
         raise SystemExit(problem)
-    counts = (("--episodes", args.episodes), ("-n", args.n_timesteps))
+    counts = (
+        ("--episodes", args.episodes),
+        ("-n", args.n_timesteps),
+        ("--width", args.width),
+        ("--height", args.height),
+    )
     too_few = [f"{flag} {n}" for flag, n in counts if n is not None and n < 1]
     if too_few:
-        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video).")
+        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video, pixels).")
     register_algos()
     name_prefix, model_path, log_path = locate_model(args)
     info = run_info.read_run_info(log_path) or {}
@@ -176,8 +183,13 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         namespace = argparse.Namespace()
         CheckedStoreDict(["--env-kwargs"], "env_kwargs")(parser, namespace, args.env_kwargs, "--env-kwargs")
         env_kwargs.update(namespace.env_kwargs)
+    env_kwargs.update({key: getattr(args, key) for key in ("width", "height") if getattr(args, key) is not None})
     env_kwargs["render_mode"] = "rgb_array"
     benchmark = split_env_id(args.env)[0]
+    try:
+        check_env_kwargs(benchmark, env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise SystemExit(f"{error} (--width and --height: Meta-World only)") from None
     model = load_model(model_path, device=args.device)
     out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
     out_error = output_folder_error("-o", out_dir)
