@@ -87,6 +87,15 @@ def test_a_run_left_out_of_table_1_is_left_out_of_every_figure(runs_with_a_crash
         assert ends == {end}, ends
 
 
+def test_only_unfinished_runs_end_with_one_line_naming_the_flag(tmp_path, capsys):
+    write_run(tmp_path / "runs", 2, [0.0], None, finished=False)
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10"])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith("evaluate them, or give --include-unfinished to draw them at their last evaluation")
+
+
 def write_nt_log(run: Path, per_task_steps: list[int]) -> None:
     """Recomputations at the given env steps per task (4 tasks), each with a transfer matrix of its own value."""
     records = [

@@ -84,7 +84,10 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
     left_out = {id(run) for run in _left_out_runs(runs, opts)}
     runs = [run for run in runs if id(run) not in left_out]
     if not runs:
-        raise PlotInputError("Every run stopped before its budget without a final evaluation: --include-unfinished")
+        raise PlotInputError(
+            "every run stopped before its budget without a final evaluation (each named above): evaluate them, or "
+            "give --include-unfinished to draw them at their last evaluation"
+        )
     opts.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     with warnings.catch_warnings():
