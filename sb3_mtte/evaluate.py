@@ -3,9 +3,10 @@
 The same as ``sb3-mtte evaluate`` (:mod:`sb3_mtte.experiments.evaluate`).
 """
 
+from sb3_mtte.experiments import closed_pipe_exit
 from sb3_mtte.experiments.evaluate import main
 
 __all__ = ["main"]
 
 if __name__ == "__main__":
-    main()
+    closed_pipe_exit(main)

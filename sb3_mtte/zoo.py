@@ -1,6 +1,5 @@
-"""rl-baselines3-zoo launcher of the multi-task algorithms: ``python -m sb3_mtte.zoo train|enjoy|record_video``.
-
-The same as ``sb3-mtte train|enjoy|record_video`` (:mod:`sb3_mtte.experiments.cli`).
+"""rl-baselines3-zoo launcher of the multi-task algorithms: ``python -m sb3_mtte.zoo <command>``, the commands of
+``sb3-mtte`` (train, enjoy, record_video, evaluate, record, plot, sweep; :mod:`sb3_mtte.experiments.cli`).
 """
 
 from sb3_mtte.experiments.cli import zoo_main as main

@@ -164,6 +164,7 @@ def test_train_takes_the_package_algorithms_only(tmp_path, flags, expected):
 def test_train_hyperparameter_mistakes_end_with_one_line(tmp_path, algo, params, expected):
     message = train_error(tmp_path, "-n", "40", "-params", params, algo=algo)
     assert re.search(expected, message), message
+    assert not list((tmp_path / algo).glob(f"{ENV}_*")), "a refused start left a run folder"
 
 
 def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, monkeypatch):
@@ -177,6 +178,32 @@ def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, mo
     monkeypatch.setattr(manager.ExperimentManager, "setup_experiment", broken_setup)
     with pytest.raises(ValueError, match="cannot reshape"):
         main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-freq", "-1", *TINY])
+
+
+@pytest.mark.parametrize(
+    ("env", "kwarg", "expected"),
+    [
+        (
+            ENV,
+            "max_episode_step:10",
+            "max_episode_step is not an env keyword argument of 'toy-conflict': did you mean "
+            "max_episode_steps? valid: n_tasks, max_episode_steps, render_mode.",
+        ),
+        (
+            "MT10-smoke",
+            "reward_fn_version:'v1'",
+            "reward_fn_version is not an env keyword argument of 'MT10': did you "
+            "mean reward_function_version? valid: n_tasks, max_episode_steps,",
+        ),
+    ],
+)
+def test_a_misspelled_env_kwargs_key_names_the_nearest_one(tmp_path, env, kwarg, expected):
+    with pytest.raises(SystemExit) as exit_info:
+        main(
+            ["train", "--algo", "mtsac_mt", "--env", env, "-f", str(tmp_path), "-n", "40", *TINY, "--env-kwargs", kwarg]
+        )
+    assert str(exit_info.value.code).startswith(f"--env-kwargs: {expected}")
+    assert not list(tmp_path.rglob("*.csv"))
 
 
 @pytest.mark.parametrize("episodes", ["0", "-2"])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import sys
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -74,6 +75,49 @@ def test_a_damaged_file_in_a_run_folder_is_named(tmp_path, files, expected):
         plot.main([str(tmp_path), "--out", str(tmp_path / "figures")])
 
 
+def test_plot_refuses_a_negative_seed_with_one_line(tmp_path, capsys):
+    message = one_line_error(capsys, plot.main, [str(tmp_path), "--seed", "-1"])
+    assert message == "--seed -1: the bootstrap seed is an int from 0 to 2**32 - 1, e.g. --seed 0"
+
+
+def test_a_device_torch_does_not_know_ends_with_one_line(tmp_path, capsys):
+    expected = "--device gpu: not a torch device; give auto, cpu, cuda or cuda:<index>."
+    assert one_line_error(capsys, evaluate.main, [str(tmp_path / "m.zip"), "--device", "gpu"]) == expected
+    for command in ("train", "enjoy", "record_video"):
+        with pytest.raises(SystemExit) as exit_info:
+            zoo_main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--device", "gpu"])
+        assert exit_info.value.code == expected, command
+    assert not (tmp_path / "mtsac_mt").exists()
+
+
+def test_sweep_refuses_a_seed_given_twice(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        sweep.main(["--algos", "mtsac_mt", "--envs", ENV, "--seeds", "0", "0", "--out", str(tmp_path)])
+    assert (
+        capsys.readouterr()
+        .err.strip()
+        .endswith(
+            "error: --seeds 0 0: 0 is given twice: each value once (a repeated one would run the same trials twice)"
+        )
+    )
+
+
+def test_sweep_imports_ray_once(tmp_path, monkeypatch):
+    calls = []
+
+    class Stop(Exception):
+        pass
+
+    def fake_import_ray():
+        calls.append(1)
+        return SimpleNamespace(tune=None, init=lambda **kwargs: (_ for _ in ()).throw(Stop()))
+
+    monkeypatch.setattr(sweep, "import_ray", fake_import_ray)
+    with pytest.raises(Stop):
+        sweep.main(["--algos", "mtsac_mt", "--envs", ENV, "--out", str(tmp_path)])
+    assert calls == [1]
+
+
 def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     argv = ["--algos", "mtsac_mt", "--envs", "toy-conflict", "--out", str(tmp_path / "sweep")]
@@ -81,16 +125,17 @@ def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
     assert message == 'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
 
 
-@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"]])
+@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"], ["--width", "0"]])
 def test_record_video_refuses_no_episode_or_no_step(tmp_path, flags):
     with pytest.raises(SystemExit) as exit_info:
         zoo_main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *flags])
-    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video)."
+    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video, pixels)."
 
 
 @pytest.mark.parametrize("episodes", [0, 2.5])
 def test_an_evaluation_callback_of_no_episode_is_refused(episodes):
-    with pytest.raises(ValueError, match=r"^episodes_per_task must be a positive int, got .*; to evaluate less often"):
+    expected = r"^episodes_per_task \(the zoo's --eval-episodes\) must be a positive int such as 10, got "
+    with pytest.raises(ValueError, match=expected):
         MultiTaskEvalCallback(make_mt_env(ENV), episodes_per_task=episodes)
 
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import configparser
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -191,6 +192,37 @@ def test_evaluate_on_another_benchmark_when_asked_warns_and_keeps_the_final_eval
     assert record["benchmark"] == "toy-agree" and record["task_names"][-1] == "agree-3"
     assert (toy_model_zip.parent / "success_toy_on_toy-agree.json").is_file()
     assert not (toy_model_zip.parent / "success.json").exists()
+
+
+@pytest.mark.parametrize("flags", [[], ["--no-progress"]])
+def test_evaluate_shows_a_progress_bar_per_task(toy_model_zip, tmp_path, capsys, flags):
+    evaluate.main([str(toy_model_zip), "--episodes", "3", "--env", ENV, "--out", str(tmp_path / "s.json"), *flags])
+    out = capsys.readouterr().out
+    bars = [match[1] for match in re.finditer(r"^(\S+) +━+ 3/3 ", out, re.MULTILINE)]
+    assert bars == ([] if flags else ["agree-0", "agree-1", "agree-2", "conflict"]), out
+
+
+def test_evaluate_names_the_reward_functions_in_its_header():
+    record = {"label": "Ours", "benchmark": "MT10", "seed": 0, "timesteps": 5, "episodes_per_task": 50}
+    assert evaluate.evaluation_title({**record, "reward_function_version": "v1"}).endswith(
+        "50 episodes per task, Meta-World reward functions v1"
+    )
+    assert evaluate.evaluation_title({**record, "reward_function_version": None}).endswith("50 episodes per task")
+
+
+def test_record_names_each_run_it_skips(tmp_path, capsys):
+    from sb3_mtte.experiments import records
+
+    run = tmp_path / "runs" / "mtsac_mt" / f"{ENV}_1"
+    run.mkdir(parents=True)
+    info = {"algo": "mtsac_mt", "label": "SAC-MT", "env_id": ENV, "seed": 4, "task_names": ["a", "b"], "n_tasks": 2}
+    (run / "run_info.json").write_text(json.dumps(info))
+    with pytest.raises(SystemExit):
+        records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    assert capsys.readouterr().err.splitlines()[0] == (
+        f"Skipped {run} ({ENV}, SAC-MT, seed 4): no final evaluation (success.json); evaluate it first: python -m "
+        f"sb3_mtte.evaluate {run / (ENV + '.zip')} --episodes 50"
+    )
 
 
 def test_top_level_help_is_plain_text(capsys):

@@ -54,7 +54,8 @@ def test_a_run_that_crashed_is_named_and_left_out_of_table_1(runs_with_a_crash, 
     plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10"])
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        f"Left out of Table 1: {crashed} (toy-conflict, SAC-MT, seed 2) has no final evaluation and stopped at 200 "
+        f"Left out of every figure and table: {crashed} (toy-conflict, SAC-MT, seed 2) has no final evaluation and "
+        "stopped at 200 "
         "of 800 env steps; --include-unfinished counts its last evaluation"
     ]
     row = table_rows(tmp_path / "figures" / "table1_toy-conflict.md")["SAC-MT"]
@@ -71,6 +72,28 @@ def test_include_unfinished_counts_a_crashed_run_at_its_last_evaluation(runs_wit
     assert "Left out" not in capsys.readouterr().err
     row = table_rows(tmp_path / "figures" / "table1_toy-conflict.md")["SAC-MT"]
     assert row[1] == "3" and row[2].startswith("25.0 [")
+
+
+def test_a_run_left_out_of_table_1_is_left_out_of_every_figure(runs_with_a_crash, tmp_path, kept_figures):
+    """The crashed run is not drawn either: the success figure counts two seeds and its curves reach the end of the
+    budget (not the crashed run's last evaluation); --include-unfinished draws all three."""
+    root, _ = runs_with_a_crash
+    for flags, n, end in (([], 2, BUDGET), (["--include-unfinished"], 3, 200)):
+        plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10", *flags])
+        axes = kept_figures["success_toy-conflict.png"].axes
+        labels = {text.get_text() for ax in axes if ax.get_legend() for text in ax.get_legend().get_texts()}
+        assert f"SAC-MT (n={n})" in labels, labels
+        ends = {max(line.get_xdata()) * 4 for ax in axes for line in ax.get_lines() if len(line.get_xdata())}
+        assert ends == {end}, ends
+
+
+def test_only_unfinished_runs_end_with_one_line_naming_the_flag(tmp_path, capsys):
+    write_run(tmp_path / "runs", 2, [0.0], None, finished=False)
+    with pytest.raises(SystemExit) as exit_info:
+        plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10"])
+    assert exit_info.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()[-1]
+    assert error.endswith("evaluate them, or give --include-unfinished to draw them at their last evaluation")
 
 
 def write_nt_log(run: Path, per_task_steps: list[int]) -> None:
@@ -110,7 +133,8 @@ def test_heatmaps_are_titled_with_the_recomputation_they_draw(tmp_path, kept_fig
     assert [float(ax.images[0].get_array().mean()) for ax in heatmaps] == [-1.0, -2.0]
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [
-        "nt_matrix_toy-conflict_SAC-MT.png: t = 100,000 is past the log's last recomputation (t = 10,010): skipped"
+        f"nt_matrix_toy-conflict_SAC-MT.png: t = 100,000 is past the last recomputation of {run} (seed 0, t = 10,010): "
+        "skipped"
     ]
 
 
@@ -125,8 +149,20 @@ def test_times_past_a_single_recomputation_draw_no_heatmap(tmp_path, kept_figure
     assert "nt_matrix_toy-conflict_SAC-MT.png" not in kept_figures and "nt_toy-conflict_SAC-MT.png" in kept_figures
     err = capsys.readouterr().err.strip().splitlines()
     assert [re.sub(r"t = [\d,]+ is", "t = T is", line) for line in err] == [
-        "nt_matrix_toy-conflict_SAC-MT.png: t = T is past the log's last recomputation (t = 5,010): skipped"
+        f"nt_matrix_toy-conflict_SAC-MT.png: t = T is past the last recomputation of {run} (seed 0, t = 5,010): skipped"
     ] * 2
+
+
+def test_a_time_past_one_seed_s_log_names_that_seed(tmp_path, kept_figures, capsys):
+    """Of two seeds, the one whose log stops first limits the heatmaps' times: the line names it."""
+    write_nt_log(write_run(tmp_path / "runs", 0, [0.1], 0.5, finished=True), [5_010, 10_010, 15_010])
+    short = write_run(tmp_path / "runs", 1, [0.1], 0.5, finished=True)
+    write_nt_log(short, [5_010, 10_010])
+    plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10", "--matrix-times", "1e5"])
+    assert capsys.readouterr().err.strip() == (
+        f"nt_matrix_toy-conflict_SAC-MT.png: t = 100,000 is past the last recomputation of {short} (seed 1, "
+        "t = 10,010): skipped"
+    )
 
 
 def test_a_run_with_one_evaluation_is_drawn_as_a_dot(tmp_path, kept_figures):

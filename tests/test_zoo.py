@@ -286,6 +286,26 @@ def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
     assert MTSAC.load(tmp_path / "best_model.zip").num_timesteps == 300
 
 
+def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_model(tmp_path, monkeypatch):
+    """SB3's order: a vector step's callbacks run before that step's update, so the evaluation at the final step
+    (and best_model.zip saved by it) sees the model before its last gradient step (README, "Run folders")."""
+    from sb3_mtte.common import evaluation
+    from sb3_mtte.envs import make_mt_env
+    from sb3_mtte.experiments.callbacks import ZooEvalCallback
+
+    seen = []
+
+    def no_success(model, env, episodes_per_task, deterministic):
+        seen.append((model.num_timesteps, model._n_updates))
+        return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
+
+    monkeypatch.setattr(evaluation, "evaluate_success", no_success)
+    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, seed=0)
+    model.learn(300, callback=ZooEvalCallback(make_mt_env(ENV), eval_freq=25, best_model_save_path=tmp_path))
+    assert seen[-1] == (300, model._n_updates - model.gradient_steps) and model.gradient_steps == 1
+    assert MTSAC.load(tmp_path / "best_model.zip")._n_updates == model._n_updates - 1
+
+
 # ================================================================================================ optuna
 def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeypatch):
     """A trial's value is the mean success over tasks of Meta-World's protocol (here a stand-in evaluation that

@@ -48,6 +48,20 @@ def test_a_missing_run_or_model_names_the_fix(trained_run, command):
         main([command, "--algo", "mtsac_mt", "--env", ENV, "-f", folder, "--load-checkpoint", "999", "-n", "5"])
 
 
+def test_enjoy_and_resume_pass_over_a_newer_folder_without_a_model(tmp_path, capsys):
+    """A folder a failed start left (older versions did) is not the latest run: enjoy and train --resume take the
+    latest folder that holds a model, and say which."""
+    run = tiny_train(tmp_path, "mtsac_mt", steps=200)
+    (run.parent / f"{ENV}_2" / ENV).mkdir(parents=True)  # monitor files and a config folder, no model
+    capsys.readouterr()
+    main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--no-render", "-n", "5"])
+    out = capsys.readouterr().out
+    assert f"Passing over {ENV}_2 (no model): the latest run with one is {run}" in out
+    assert "Loading latest experiment, id=1" in out
+    main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--resume", "-n", "200", "--no-progress"])
+    assert f"Resuming {run} from" in capsys.readouterr().out
+
+
 @pytest.mark.parametrize("command", ["enjoy", "record_video"])
 def test_no_run_at_all_gets_its_message_alone(tmp_path, capsys, command):
     """Without any run of the algorithm on the env (no folder, or an empty one), one line naming the run folder
@@ -177,3 +191,19 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
         env.close()
     for i, task in enumerate(tasks):
         np.testing.assert_array_equal(np.stack([step[i] for step in frames]), np.stack(alone[i]), err_msg=task)
+
+
+def test_a_video_is_written_under_a_temporary_name_and_renamed_when_complete(tmp_path):
+    """A video stopped midway leaves nothing under its name (and no partial file); a complete one is renamed."""
+    from sb3_mtte.experiments.video import write_video
+
+    def frames(n: int, fail: bool):
+        for _ in range(n):
+            yield np.zeros((16, 16, 3), dtype=np.uint8)
+        if fail:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_video(frames(3, fail=True), tmp_path / "stopped.mp4", fps=10)
+    assert write_video(frames(3, fail=False), tmp_path / "whole.mp4", fps=10)
+    assert sorted(path.name for path in tmp_path.iterdir()) == ["whole.mp4"]

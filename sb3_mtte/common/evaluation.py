@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, Protocol
 
@@ -19,7 +20,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.update_monitor import record_train_stats
-from sb3_mtte.common.utils import check_multitask_env, get_task_names, task_log_key
+from sb3_mtte.common.utils import check_multitask_env, check_positive_int, get_task_names, task_log_key
 
 
 class Predictor(Protocol):
@@ -79,6 +80,7 @@ def evaluate_success(
     seed: int | None = None,
     terminate_on_success: bool = True,
     env_kwargs: dict[str, Any] | None = None,
+    on_episode: Callable[[int], None] | None = None,
 ) -> SuccessResult:
     """Success rate of each task, Meta-World's official protocol (one episode per goal variation).
 
@@ -93,6 +95,7 @@ def evaluate_success(
         success rate is the same, and evaluation is faster.
     :param env_kwargs: keyword arguments of :func:`sb3_mtte.envs.make_mt_env` for the env built from a spec
         (``reward_function_version``: some Meta-World tasks measure success differently under ``"v1"``).
+    :param on_episode: called with the task index at each counted episode (a progress display).
     :return: the per-task success rates and their mean.
     """
     if episodes_per_task < 1:
@@ -112,7 +115,7 @@ def evaluate_success(
         if not _set_eval_mode(env, True, terminate_on_success):
             warnings.warn("The env has no evaluation mode (set_eval_mode): goal variations are not cycled.")
         try:
-            rates = _run_episodes(model, env, n_tasks, episodes_per_task, deterministic)
+            rates = _run_episodes(model, env, n_tasks, episodes_per_task, deterministic, on_episode)
         finally:
             _set_eval_mode(env, False, terminate_on_success)
         return SuccessResult(get_task_names(env), rates, episodes_per_task=episodes_per_task)
@@ -131,7 +134,14 @@ def _check_model_fits(model: Predictor, env: VecEnv) -> None:
         )
 
 
-def _run_episodes(model: Predictor, env: VecEnv, n_tasks: int, episodes: int, deterministic: bool) -> np.ndarray:
+def _run_episodes(
+    model: Predictor,
+    env: VecEnv,
+    n_tasks: int,
+    episodes: int,
+    deterministic: bool,
+    on_episode: Callable[[int], None] | None = None,
+) -> np.ndarray:
     """Step all sub-envs until each has finished ``episodes`` episodes; return each one's success fraction."""
     done_count = np.zeros(n_tasks, dtype=np.int64)
     success_count = np.zeros(n_tasks, dtype=np.int64)
@@ -145,6 +155,8 @@ def _run_episodes(model: Predictor, env: VecEnv, n_tasks: int, episodes: int, de
             if done_count[i] < episodes:
                 done_count[i] += 1
                 success_count[i] += bool(infos[i].get("is_success", False))
+                if on_episode is not None:
+                    on_episode(int(i))
         episode_start = dones
     return success_count / episodes
 
@@ -176,11 +188,7 @@ class MultiTaskEvalCallback(BaseCallback):
         verbose: int = 0,
     ) -> None:
         super().__init__(verbose=verbose)
-        if isinstance(episodes_per_task, bool) or not isinstance(episodes_per_task, int) or episodes_per_task < 1:
-            raise ValueError(
-                f"episodes_per_task must be a positive int, got {episodes_per_task!r}; to evaluate less often, raise "
-                "eval_freq (--eval-freq -1 turns the zoo's evaluation off)."
-            )
+        check_positive_int("episodes_per_task (the zoo's --eval-episodes)", episodes_per_task, "10")
         if not isinstance(eval_env, VecEnv):
             from sb3_mtte.envs import make_mt_env
 

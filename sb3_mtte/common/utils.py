@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import difflib
 import math
 import sys
 from collections.abc import Iterable
@@ -21,6 +22,18 @@ ONE_TASK_FIX = "or wrap one single-task env in OneHotTaskWrapper (DummyVecEnv([l
 def env_fix(n_envs: int, min_tasks: int = 1) -> str:
     """How to build the env: make_mt_env, and for one sub-env where one task is enough, the one-hot wrapper."""
     return f"{MAKE_ENV_FIX}, {ONE_TASK_FIX}" if n_envs == 1 and min_tasks == 1 else MAKE_ENV_FIX
+
+
+def nearest_names(name: str, names: Iterable[str], n: int = 1, cutoff: float = 0.6) -> list[str]:
+    """The ``n`` names of ``names`` nearest to a misspelled ``name`` (difflib's ratio at least ``cutoff``), nearest
+    first: what every "did you mean" of the package names."""
+    return difflib.get_close_matches(name, list(names), n=n, cutoff=cutoff)
+
+
+def did_you_mean(name: str, names: Iterable[str]) -> str:
+    """``"did you mean X?"`` with the name of ``names`` nearest to ``name``, or ``""`` when none is near."""
+    close = nearest_names(name, names)
+    return f"did you mean {close[0]}?" if close else ""
 
 
 def short_task_name(name: str) -> str:

@@ -19,9 +19,10 @@ import gymnasium as gym
 from stable_baselines3.common.monitor import Monitor
 from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 
-from sb3_mtte.common.utils import check_multitask_env, check_one_hot, get_task_names
+from sb3_mtte.common.utils import check_multitask_env, check_one_hot, did_you_mean, get_task_names
 from sb3_mtte.envs.metaworld_envs import (
     METAWORLD_BENCHMARKS,
+    METAWORLD_ENV_KWARGS,
     MT10_TASKS,
     MT20_TASKS,
     MT25_TASKS,
@@ -32,7 +33,7 @@ from sb3_mtte.envs.metaworld_envs import (
     make_metaworld_env_fns,
     metaworld_task_names,
 )
-from sb3_mtte.envs.toy import TOY_BENCHMARKS, ToyOraclePolicy, make_toy_env_fns, parse_toy_name
+from sb3_mtte.envs.toy import TOY_BENCHMARKS, TOY_ENV_KWARGS, ToyOraclePolicy, make_toy_env_fns, parse_toy_name
 from sb3_mtte.envs.wrappers import MultiTaskWrapper, OneHotTaskWrapper
 
 BenchmarkSpec = str | Sequence[str]
@@ -60,12 +61,35 @@ def make_env_fns(benchmark: BenchmarkSpec, seed: int = 0, **kwargs: Any) -> list
     return env_fns
 
 
+def env_kwargs_names(benchmark: BenchmarkSpec) -> tuple[str, ...]:
+    """The keyword arguments of :func:`make_mt_env` that build ``benchmark``'s sub-envs."""
+    if isinstance(benchmark, str) and parse_toy_name(benchmark) is not None:
+        return ("n_tasks", *TOY_ENV_KWARGS)
+    return ("n_tasks", *METAWORLD_ENV_KWARGS)
+
+
+def check_env_kwargs(benchmark: BenchmarkSpec, env_kwargs: Mapping[str, Any] | None) -> None:
+    """Refuse a keyword argument that ``benchmark``'s envs do not take, naming the nearest valid one.
+
+    :raises TypeError: for an unknown keyword (``ValueError`` for a reward function the benchmark lacks).
+    """
+    reward_function_version(benchmark, env_kwargs)
+    valid = env_kwargs_names(benchmark)
+    for key in env_kwargs or {}:
+        if key not in valid:
+            hint = did_you_mean(key, valid)
+            raise TypeError(
+                f"{key} is not an env keyword argument of {benchmark!r}: {hint + ' ' if hint else ''}valid: "
+                f"{', '.join(valid)}."
+            )
+
+
 def _env_fns(benchmark: BenchmarkSpec, seed: int, **kwargs: Any) -> list[Callable[[], gym.Env]]:
+    check_env_kwargs(benchmark, kwargs)
     n_tasks = kwargs.pop("n_tasks", None)
     if isinstance(benchmark, str):
         toy = parse_toy_name(benchmark, n_tasks)
         if toy is not None:
-            reward_function_version(benchmark, kwargs)
             return make_toy_env_fns(toy[0], seed=seed, n_tasks=toy[1], **kwargs)
         task_names = metaworld_task_names(benchmark)
         if task_names is None:
@@ -150,6 +174,8 @@ __all__ = [
     "MultiTaskWrapper",
     "OneHotTaskWrapper",
     "ToyOraclePolicy",
+    "check_env_kwargs",
+    "env_kwargs_names",
     "get_task_names",
     "make_env_fns",
     "make_mt_env",

@@ -29,7 +29,6 @@ reset takes about 8 ms. Meta-World's scripted experts score 0.98 on MT10 under :
 
 from __future__ import annotations
 
-import difflib
 import warnings
 from collections.abc import Callable, Sequence
 from functools import lru_cache, partial
@@ -40,6 +39,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
+from sb3_mtte.common.utils import nearest_names
 from sb3_mtte.envs.wrappers import MultiTaskWrapper
 
 MT10_TASKS: list[str] = [
@@ -145,7 +145,7 @@ def check_reward_function_version(version: Any) -> str:
 
 
 def _nearest_names(name: str) -> str:
-    return f"{name!r} (nearest: {', '.join(difflib.get_close_matches(name, MT50_TASKS, n=3, cutoff=0.0))})"
+    return f"{name!r} (nearest: {', '.join(nearest_names(name, MT50_TASKS, n=3, cutoff=0.0))})"
 
 
 def validate_task_names(task_names: Sequence[str]) -> list[str]:

@@ -228,6 +228,10 @@ def make_toy_task_env(
     )
 
 
+TOY_ENV_KWARGS = ("max_episode_steps", "render_mode")
+"""Keyword arguments of a toy benchmark's envs (besides the seed and the task count)."""
+
+
 def make_toy_env_fns(
     benchmark: str,
     seed: int = 0,

@@ -18,14 +18,42 @@
 - :mod:`~sb3_mtte.experiments.cli`: the ``sb3-mtte`` command.
 """
 
+import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 
 def command_prog(command: str, module: str) -> str:
     """How the user called ``command``: ``sb3-mtte <command>`` from the console script, else
     ``python -m <module>`` (for usage lines and errors)."""
     return f"sb3-mtte {command}" if Path(sys.argv[0]).name == "sb3-mtte" else f"python -m {module}"
+
+
+def closed_pipe_exit(main: Callable[[], Any]) -> Any:
+    """Run ``main``; output cut short by a closed pipe (``... --help | head``) ends the command quietly, as a shell
+    command does, with no traceback (Python's recipe: stdout to devnull, exit status 1)."""
+    try:
+        result = main()
+        sys.stdout.flush()
+        return result
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(1) from None
+
+
+def device_error(flag: str, device: str | None) -> str | None:
+    """Why ``device`` is no torch device (``--device gpu``), or None: SB3's ``auto`` and any name torch takes."""
+    import torch as th
+
+    if device in (None, "auto"):
+        return None
+    try:
+        th.device(device)
+    except (RuntimeError, TypeError):
+        return f"{flag} {device}: not a torch device; give auto, cpu, cuda or cuda:<index>."
+    return None
 
 
 def output_folder_error(flag: str, path: str | Path) -> str | None:

@@ -67,6 +67,29 @@ def find_latest_checkpoint(run_dir: str | os.PathLike) -> Checkpoint | None:
     return found[-1] if found else None
 
 
+def run_folders(log_folder: str | os.PathLike, algo: str, env_name: str) -> list[Path]:
+    """The run folders ``<log_folder>/<algo>/<env_name>_<id>`` (rl-zoo's names), latest (highest id) first."""
+    found = []
+    for path in (Path(log_folder) / algo).glob(f"{env_name}_*"):
+        suffix = path.name[len(env_name) + 1 :]
+        if suffix.isdigit() and path.is_dir():
+            found.append((int(suffix), path))
+    return [path for _, path in sorted(found, reverse=True)]
+
+
+def latest_run_with_model(log_folder: str | os.PathLike, algo: str, env_name: str) -> Path | None:
+    """The latest run folder of ``algo`` on ``env_name`` that holds a model (final, best or checkpoint), else the
+    latest one that holds a started run (``run_info.json``), else None; newer folders passed over are named in one
+    line on stdout."""
+    folders = run_folders(log_folder, algo, env_name)
+    chosen = next((p for p in folders if any(p.glob("*.zip"))), None)
+    chosen = chosen or next((p for p in folders if (p / "run_info.json").is_file()), None)
+    passed = [p.name for p in folders[: folders.index(chosen)]] if chosen is not None else []
+    if passed:
+        print(f"Passing over {', '.join(passed)} (no model): the latest run with one is {chosen}")
+    return chosen
+
+
 def restart_seed(seed: int, timesteps: int, stream: int = 0) -> int:
     """Seed of the envs restarted at a checkpoint: a function of the run seed, the step and the env (0: train)."""
     state = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(seed) >> 32, int(timesteps), stream])

@@ -14,8 +14,9 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
     sb3-mtte compare docs/records --benchmark MT10-100k    # two algorithms, as fixed before the runs
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
-``python -m sb3_mtte.zoo train|enjoy|record_video``, ``python -m sb3_mtte.evaluate``, ``python -m sb3_mtte.plot``,
-``python -m sb3_mtte.compare`` and ``python -m sb3_mtte.sweep`` are the same commands.
+``python -m sb3_mtte.zoo <command>`` takes the same eight commands; ``python -m sb3_mtte.evaluate``,
+``python -m sb3_mtte.record``, ``python -m sb3_mtte.plot``, ``python -m sb3_mtte.compare`` and
+``python -m sb3_mtte.sweep`` are the same commands.
 
 What ``train`` adds to rl-zoo3: the package's zoo keys (:mod:`~sb3_mtte.experiments.variants`) in ``rl_zoo3.ALGOS``
 with their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
@@ -29,7 +30,6 @@ video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
-import difflib
 import re
 import sys
 import textwrap
@@ -39,7 +39,8 @@ from typing import Any
 
 import rl_zoo3.enjoy
 
-from sb3_mtte.experiments import compare, evaluate, plot, records, sweep
+from sb3_mtte.common.utils import nearest_names
+from sb3_mtte.experiments import closed_pipe_exit, command_prog, compare, evaluate, plot, records, sweep
 from sb3_mtte.experiments.env_ids import register_standard_env_ids
 from sb3_mtte.experiments.launcher import train
 from sb3_mtte.experiments.playback import enjoy, record_video
@@ -48,26 +49,21 @@ from sb3_mtte.experiments.zoo_parsers import ENJOY_DESCRIPTION, zoo_parser
 
 def enjoy_command(argv: Sequence[str]) -> Any:
     """``enjoy``, whose rl-zoo parser shows what it does and the package's zoo keys."""
-    with zoo_parser(rl_zoo3.enjoy, ENJOY_DESCRIPTION):
+    with zoo_parser(rl_zoo3.enjoy, ENJOY_DESCRIPTION, prog=command_prog("enjoy", "sb3_mtte.zoo enjoy")):
         return enjoy(argv)
 
 
-ZOO_COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
+COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
     "train": train,
     "enjoy": enjoy_command,
     "record_video": record_video,
-}
-"""The rl-zoo commands (``python -m sb3_mtte.zoo``)."""
-
-COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
-    **ZOO_COMMANDS,
     "evaluate": evaluate.main,
     "plot": plot.main,
     "compare": compare.main,
     "record": records.main,
     "sweep": sweep.main,
 }
-"""Every command of ``sb3-mtte``."""
+"""Every command of ``sb3-mtte`` and of ``python -m sb3_mtte.zoo``."""
 
 
 def plain_text(doc: str) -> str:
@@ -83,14 +79,19 @@ def plain_text(doc: str) -> str:
 
 def unknown_command_message(prog: str, command: str, commands: Sequence[str]) -> str:
     """One line naming an unknown command, the nearest known one and every command."""
-    close = difflib.get_close_matches(command, commands, n=1)
+    close = nearest_names(command, commands)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"{prog}: unknown command {command!r}{hint}; commands: {', '.join(commands)} ({prog} --help for more)"
 
 
 def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: Sequence[str] | None) -> Any:
-    """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None)."""
+    """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None); output cut short
+    by a closed pipe ends it quietly."""
     argv = list(sys.argv[1:] if argv is None else argv)
+    return closed_pipe_exit(lambda: _dispatch(commands, prog, argv))
+
+
+def _dispatch(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: list[str]) -> Any:
     if argv and argv[0] not in commands and argv[0] not in ("-h", "--help"):
         print(unknown_command_message(prog, argv[0], list(commands)), file=sys.stderr)
         raise SystemExit(2)
@@ -115,8 +116,9 @@ def console_main() -> None:
 
 
 def zoo_main(argv: Sequence[str] | None = None) -> Any:
-    """``python -m sb3_mtte.zoo {train,enjoy,record_video} ...``"""
-    return run_command(ZOO_COMMANDS, "python -m sb3_mtte.zoo", argv)
+    """``python -m sb3_mtte.zoo {train,enjoy,record_video,evaluate,plot,record,sweep} ...``: the commands of
+    :func:`main`."""
+    return run_command(COMMANDS, "python -m sb3_mtte.zoo", argv)
 
 
-__all__ = ["COMMANDS", "ZOO_COMMANDS", "console_main", "enjoy_command", "main", "zoo_main"]
+__all__ = ["COMMANDS", "console_main", "enjoy_command", "main", "zoo_main"]

@@ -7,7 +7,6 @@ once per algorithm family; a variant's entries are the family's with the variant
 
 from __future__ import annotations
 
-import difflib
 import inspect
 from collections.abc import Callable, Iterable
 from importlib import resources
@@ -16,6 +15,7 @@ from typing import Any
 
 import yaml
 
+from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.envs.metaworld_envs import is_task_list
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, algo_classes, family_of
@@ -149,8 +149,7 @@ def unknown_key_message(algo: str, keys: Iterable[str], source: Callable[[str], 
             continue
         if key in FLAG_KEYS:
             return f"{key} (in {source(key)}) is not a hyperparameter: set it with the flag {FLAG_KEYS[key]}."
-        close = difflib.get_close_matches(key, valid, n=1)
-        hint = f"did you mean {close[0]}?" if close else f"the keys of {algo} are {' '.join(sorted(valid))}."
+        hint = did_you_mean(key, valid) or f"the keys of {algo} are {' '.join(sorted(valid))}."
         return f"Unknown hyperparameter {key} (in {source(key)}) of {algo}: {hint}"
     return None
 

@@ -2,7 +2,7 @@
 
 Usage::
 
-    sb3-mtte evaluate MODEL.zip [--env MT10] [--episodes 50] [--seed S] [--device cpu] [--out PATH]
+    sb3-mtte evaluate MODEL.zip [--env MT10] [--episodes 50] [--seed S] [--device cpu] [--out PATH] [--no-progress]
 
 MODEL is a checkpoint of MTSAC or MTSACTE (the class is read from the zip). Each task runs ``--episodes``
 episodes, one per goal variation in order, with deterministic actions (:func:`sb3_mtte.evaluate_success`).
@@ -20,12 +20,13 @@ model, ``success_<model name>.json`` for any other file (checkpoints, ``best_mod
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import sys
 import time
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +35,7 @@ from stable_baselines3.common.base_class import BaseAlgorithm
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
-from sb3_mtte.experiments import command_prog, output_file_error, run_info
+from sb3_mtte.experiments import command_prog, device_error, output_file_error, run_info
 from sb3_mtte.experiments.checkpoints import load_model
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 
@@ -74,6 +75,7 @@ def evaluate_model(
     out: str | os.PathLike | None = None,
     stochastic: bool = False,
     other_benchmark: bool = False,
+    progress: bool = False,
 ) -> dict[str, Any]:
     """Evaluate a saved model, print the table, write the JSON and return its content.
 
@@ -85,6 +87,7 @@ def evaluate_model(
     :param out: JSON path (default: :func:`default_output_path`).
     :param stochastic: sample actions instead of the deterministic ones.
     :param other_benchmark: evaluate a model on a benchmark other than the one it was trained on (else refused).
+    :param progress: show a progress bar per task (rich, as SB3's ``progress_bar``).
     """
     model_path = Path(model_path)
     data = _checkpoint_data(model_path)
@@ -100,9 +103,17 @@ def evaluate_model(
     version = info.get("reward_function_version")
     env_kwargs = {} if version is None else {"reward_function_version": version}
     start = time.time()
-    result = evaluate_success(
-        model, benchmark, episodes_per_task=episodes, deterministic=not stochastic, seed=seed, env_kwargs=env_kwargs
-    )
+    tasks = benchmark if isinstance(benchmark, list) else benchmark_task_names(benchmark)
+    with task_progress(tasks, episodes, progress) as on_episode:
+        result = evaluate_success(
+            model,
+            benchmark,
+            episodes_per_task=episodes,
+            deterministic=not stochastic,
+            seed=seed,
+            env_kwargs=env_kwargs,
+            on_episode=on_episode,
+        )
     record = {
         **result.as_dict(),
         "success_rate": [float(r) for r in result.success_rate],
@@ -127,15 +138,37 @@ def evaluate_model(
     return record
 
 
-def _report(record: dict[str, Any], result: SuccessResult, out_path: Path) -> None:
-    """Write ``record`` as JSON at ``out_path`` and print its per-task table."""
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    out_path.write_text(json.dumps(record, indent=2) + "\n")
+@contextlib.contextmanager
+def task_progress(task_names: Sequence[str], episodes: int, enabled: bool) -> Iterator[Callable[[int], None] | None]:
+    """A progress bar per task (rich, as SB3's ``progress_bar``) for the time of a ``with`` block; it yields the
+    function that counts an episode of task ``i`` (None when not ``enabled``)."""
+    if not enabled:
+        yield None
+        return
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with Progress(*columns) as bars:
+        ids = [bars.add_task(name, total=episodes) for name in task_names]
+        yield lambda i: bars.advance(ids[i])
+
+
+def evaluation_title(record: dict[str, Any]) -> str:
+    """The header of an evaluation's table: model, benchmark, seed, steps, episodes and Meta-World's reward
+    functions (a benchmark's success differs between them)."""
     title = (
         f"{record['label'] or record['algorithm']} on {record['benchmark']} (seed {record['seed']}), "
         f"{record['timesteps']} steps, {record['episodes_per_task']} episodes per task"
     )
-    print(format_table(result, title))
+    version = record.get("reward_function_version")
+    return title if version is None else f"{title}, Meta-World reward functions {version}"
+
+
+def _report(record: dict[str, Any], result: SuccessResult, out_path: Path) -> None:
+    """Write ``record`` as JSON at ``out_path`` and print its per-task table."""
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    out_path.write_text(json.dumps(record, indent=2) + "\n")
+    print(format_table(result, evaluation_title(record)))
     print(f"\nWritten to {out_path}")
 
 
@@ -216,6 +249,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--device", default="auto", help="torch device (default auto)")
     parser.add_argument("--out", default=None, help="JSON path (default: success.json beside the model)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars (default: one per task)")
     parser.add_argument(
         "--other-benchmark",
         action="store_true",
@@ -223,11 +257,20 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     )
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     out_error = None if args.out is None else output_file_error("--out", args.out)
+    out_error = device_error("--device", args.device) or out_error
     if out_error:
         parser.exit(2, f"{parser.prog}: error: {out_error}\n")
     try:
         return evaluate_model(
-            args.model, args.env, args.episodes, args.seed, args.device, args.out, args.stochastic, args.other_benchmark
+            args.model,
+            args.env,
+            args.episodes,
+            args.seed,
+            args.device,
+            args.out,
+            args.stochastic,
+            args.other_benchmark,
+            progress=not args.no_progress,
         )
     except (FileNotFoundError, ValueError) as error:
         parser.exit(2, f"{parser.prog}: error: {error}\n")

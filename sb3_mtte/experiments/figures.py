@@ -324,15 +324,17 @@ def _recomputation_times(run: Run, opts: PlotOptions) -> np.ndarray:
 def _drawn_matrices(runs: Sequence[Run], opts: PlotOptions, name: str) -> dict[str, list[int]]:
     """Title (the time drawn) -> the recomputation of each run that the heatmap averages: the one nearest to each
     matrix time. A time more than one recomputation interval past a run's last recomputation is skipped with a line
-    naming it; times that draw the same recomputations give one heatmap."""
+    naming the time and that run; times that draw the same recomputations give one heatmap."""
     times = [_recomputation_times(run, opts) for run in runs]
-    last = min(float(steps[-1]) for steps in times)
-    reach = min(float(steps[-1] + _interval(steps)) for steps in times)
+    reaches = [float(steps[-1] + _interval(steps)) for steps in times]
+    shortest = int(np.argmin(reaches))
     drawn: dict[str, list[int]] = {}
     for t in _matrix_times(runs, opts):
-        if t > reach:
+        if t > reaches[shortest]:
             print(
-                f"{name}: t = {t:,.0f} is past the log's last recomputation (t = {last:,.0f}): skipped", file=sys.stderr
+                f"{name}: t = {t:,.0f} is past the last recomputation of {runs[shortest].path} (seed "
+                f"{runs[shortest].seed}, t = {times[shortest][-1]:,.0f}): skipped",
+                file=sys.stderr,
             )
             continue
         picks = [int(np.argmin(np.abs(steps - t))) for steps in times]

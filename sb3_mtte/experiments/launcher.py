@@ -9,9 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import difflib
 import importlib.util
-import os
 import sys
 from collections.abc import Iterator, Sequence
 from pathlib import Path
@@ -21,9 +19,10 @@ import rl_zoo3
 import rl_zoo3.train
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
-from rl_zoo3.utils import get_latest_run_id
 
-from sb3_mtte.experiments import run_info
+from sb3_mtte.common.utils import did_you_mean
+from sb3_mtte.experiments import command_prog, device_error, run_info
+from sb3_mtte.experiments.checkpoints import latest_run_with_model
 from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
 from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
@@ -73,15 +72,15 @@ def has_flag(argv: Sequence[str], *names: str) -> bool:
 
 
 def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
-    """The latest run folder ``<log_folder>/<algo>/<env>_<id>``."""
-    env_name = EnvironmentName(env_id)
-    exp_id = get_latest_run_id(os.path.join(log_folder, algo), env_name)
-    if exp_id == 0:
+    """The latest run folder ``<log_folder>/<algo>/<env>_<id>`` that holds a model or checkpoint (else a started
+    run: :func:`~sb3_mtte.experiments.checkpoints.latest_run_with_model`)."""
+    run_dir = latest_run_with_model(log_folder, algo, str(EnvironmentName(env_id)))
+    if run_dir is None:
         raise SystemExit(
             f"No run of {algo} on {env_id} in {log_folder}/{algo}/ to resume: give -f of your runs, or --resume "
             "RUN_DIR."
         )
-    return Path(log_folder) / algo / f"{env_name}_{exp_id}"
+    return run_dir
 
 
 def _launcher_parser() -> argparse.ArgumentParser:
@@ -96,9 +95,10 @@ def check_algo(algo: str | None) -> str:
     if algo is None:
         raise SystemExit(f"--algo is required: one of {' '.join(keys)}.")
     if algo not in keys:
-        close = difflib.get_close_matches(algo, keys, n=1)
-        hint = f"did you mean {close[0]}? " if close else ""
-        raise SystemExit(f"--algo {algo} is not an algorithm of sb3_mtte: {hint}one of {' '.join(keys)}.")
+        hint = did_you_mean(algo, keys)
+        raise SystemExit(
+            f"--algo {algo} is not an algorithm of sb3_mtte: {hint + ' ' if hint else ''}one of {' '.join(keys)}."
+        )
     return algo
 
 
@@ -193,6 +193,9 @@ def train(argv: Sequence[str]) -> None:
     algo = check_algo(flag_value(zoo_argv, "--algo"))
     check_budget(zoo_argv)
     check_conf_file(zoo_argv)
+    problem = device_error("--device", flag_value(zoo_argv, "--device"))
+    if problem:
+        raise SystemExit(problem)
     register_algos()
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
     if ours.resume is None and not has_flag(zoo_argv, "--vec-env"):  # a resumed run keeps its own (args.yml)
@@ -217,10 +220,11 @@ def run_zoo_train(zoo_argv: list[str], launch: LaunchOptions) -> None:
     def make_manager(*args: Any, **kwargs: Any) -> MultiTaskExperimentManager:
         return MultiTaskExperimentManager(*args, launch=launch, **kwargs)
 
+    prog = command_prog("train", "sb3_mtte.zoo train")
     with (
         patched(sys, "argv", [f"{sys.argv[0]} train", *zoo_argv]),
         patched(rl_zoo3.train, "ExperimentManager", make_manager),
-        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True),
+        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True, prog=prog),
     ):
         rl_zoo3.train.train()
 

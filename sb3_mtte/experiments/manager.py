@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import shutil
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,7 +27,7 @@ from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
 
 from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
-from sb3_mtte.envs import reward_function_version
+from sb3_mtte.envs import check_env_kwargs, reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
 from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
@@ -82,14 +83,15 @@ class MultiTaskExperimentManager(ExperimentManager):
         self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
         self.eval_callback: ZooEvalCallback | None = None
         self._eval_env: VecEnv | None = None
-        self._check_reward_function_version()
+        self._check_env_kwargs()
 
-    def _check_reward_function_version(self) -> None:
-        """Refuse a ``reward_function_version`` Meta-World lacks (or one given to a toy) before any folder is made."""
+    def _check_env_kwargs(self) -> None:
+        """Refuse an env keyword the benchmark lacks (the nearest valid one named), or a ``reward_function_version``
+        Meta-World lacks (or one given to a toy), before any folder is made."""
         for flag, env_kwargs in (("--env-kwargs", self.env_kwargs), ("--eval-env-kwargs", self.eval_env_kwargs)):
             try:
-                reward_function_version(self.benchmark, env_kwargs)
-            except ValueError as error:
+                check_env_kwargs(self.benchmark, env_kwargs)
+            except (TypeError, ValueError) as error:
                 raise SystemExit(f"{flag}: {error}") from None
 
     def _restore_run_args(self) -> None:
@@ -225,7 +227,17 @@ class MultiTaskExperimentManager(ExperimentManager):
     # ---- set-up
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         """rl-zoo's set-up, or a resumed run's; a ``ValueError`` that this package or rl-zoo raises on the
-        hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback."""
+        hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback.
+        A new run whose set-up fails leaves no folder behind (later commands would take it for the latest run)."""
+        new_folder = self.launch.resume_dir is None and not os.path.exists(self.save_path)
+        try:
+            return self._setup_experiment()
+        except BaseException:
+            if new_folder:
+                shutil.rmtree(self.save_path, ignore_errors=True)
+            raise
+
+    def _setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         try:
             if self.launch.resume_dir is not None:
                 return self._setup_resume()

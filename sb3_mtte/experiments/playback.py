@@ -13,11 +13,11 @@ import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.exp_manager import ExperimentManager
-from rl_zoo3.utils import get_latest_run_id, get_model_path
+from rl_zoo3.utils import get_model_path
 
-from sb3_mtte.envs import make_env_fns, make_mt_env
-from sb3_mtte.experiments import output_folder_error, run_info
-from sb3_mtte.experiments.checkpoints import load_model
+from sb3_mtte.envs import check_env_kwargs, make_env_fns, make_mt_env
+from sb3_mtte.experiments import command_prog, device_error, output_folder_error, run_info
+from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
     benchmark_help,
@@ -31,10 +31,11 @@ from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
 
 
 def _latest_run_id(args: argparse.Namespace) -> int:
-    """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder``, announced as rl-zoo does;
-    exits with one line when there is none."""
+    """The id of the latest run of ``args.algo`` on ``args.env`` under ``args.folder`` that holds a model, announced
+    as rl-zoo does; exits with one line when there is none."""
     env_name = EnvironmentName(args.env)
-    exp_id = get_latest_run_id(os.path.join(args.folder, args.algo), env_name)
+    run_dir = latest_run_with_model(args.folder, args.algo, str(env_name))
+    exp_id = 0 if run_dir is None else int(run_dir.name.rsplit("_", 1)[1])
     if exp_id == 0:
         raise SystemExit(
             f"No run folder {os.path.join(args.folder, args.algo, f'{env_name}_<id>')}: give -f, --algo, --env "
@@ -98,6 +99,9 @@ def enjoy(argv: Sequence[str]) -> None:
         _run_zoo_enjoy(argv, MultiTaskVecEnvFactory(1))
     if env_id is None or not register_env_id(env_id):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+    problem = device_error("--device", flag_value(argv, "--device"))
+    if problem:
+        raise SystemExit(problem)
     if not has_flag(argv, "-f", "--folder"):
         argv += ["-f", "logs"]
     n_tasks = env_id_n_tasks(env_id)
@@ -124,10 +128,13 @@ def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
 
 
 def _record_video_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sb3-mtte record_video", parents=[_model_parser("record_video")])
+    prog = command_prog("record_video", "sb3_mtte.zoo record_video")
+    parser = argparse.ArgumentParser(prog=prog, parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
-    parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task")
+    parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task (default 1)")
+    parser.add_argument("--width", type=int, default=None, help="frame width in pixels (Meta-World; default 480)")
+    parser.add_argument("--height", type=int, default=None, help="frame height in pixels (Meta-World; default 480)")
     parser.add_argument("--stochastic", action="store_true", help="sample actions (default: deterministic)")
     parser.add_argument("--seed", type=int, default=None, help="benchmark seed (default: the run's)")
     parser.add_argument("--env-kwargs", type=str, nargs="+", default=None, help="key:value env keyword arguments")
@@ -155,10 +162,18 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         os.environ["MUJOCO_GL"] = "egl"
     if not register_env_id(args.env):
         raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
-    counts = (("--episodes", args.episodes), ("-n", args.n_timesteps))
+    problem = device_error("--device", args.device)
+    if problem:
+        raise SystemExit(problem)
+    counts = (
+        ("--episodes", args.episodes),
+        ("-n", args.n_timesteps),
+        ("--width", args.width),
+        ("--height", args.height),
+    )
     too_few = [f"{flag} {n}" for flag, n in counts if n is not None and n < 1]
     if too_few:
-        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video).")
+        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video, pixels).")
     register_algos()
     name_prefix, model_path, log_path = locate_model(args)
     info = run_info.read_run_info(log_path) or {}
@@ -168,8 +183,13 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         namespace = argparse.Namespace()
         CheckedStoreDict(["--env-kwargs"], "env_kwargs")(parser, namespace, args.env_kwargs, "--env-kwargs")
         env_kwargs.update(namespace.env_kwargs)
+    env_kwargs.update({key: getattr(args, key) for key in ("width", "height") if getattr(args, key) is not None})
     env_kwargs["render_mode"] = "rgb_array"
     benchmark = split_env_id(args.env)[0]
+    try:
+        check_env_kwargs(benchmark, env_kwargs)
+    except (TypeError, ValueError) as error:
+        raise SystemExit(f"{error} (--width and --height: Meta-World only)") from None
     model = load_model(model_path, device=args.device)
     out_dir = Path(args.output_folder or os.path.join(log_path, "videos"))
     out_error = output_folder_error("-o", out_dir)

@@ -20,8 +20,8 @@ Written to ``--out``, per benchmark ``<b>``:
   the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
   (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
   (``success.json``) when present, else its last evaluation; a run without a final evaluation that stopped before its
-  budget (crashed, killed, still training) is left out of the table, the profile and the runs table, and named in
-  one line on stderr (``--include-unfinished`` counts its last evaluation);
+  budget (crashed, killed, still training) is left out of every figure and table, and named in one line on stderr
+  (``--include-unfinished`` draws it and counts its last evaluation);
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
   its package commit;
 - ``bellman_<b>.md``, for runs that log the per-task critic loss: every run, seed by seed: between consecutive
@@ -31,7 +31,7 @@ Written to ``--out``, per benchmark ``<b>``:
 - the figures of :mod:`sb3_mtte.experiments.figures`: Bellman error (from run folders and from records that keep the
   training losses) and, from run folders only (they need the logs that records leave out), train frequency, mu and
   w, and transfer-matrix heatmaps at ``--matrix-times``, each titled with the time of the recomputation it draws,
-  the nearest; a time past the log is skipped with a line.
+  the nearest; a time past the log is skipped with a line naming the run whose log stops first.
 
 Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
 episodes (``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
@@ -82,6 +82,12 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
         )
     _check_tasks(runs, opts.tasks)
     left_out = {id(run) for run in _left_out_runs(runs, opts)}
+    runs = [run for run in runs if id(run) not in left_out]
+    if not runs:
+        raise PlotInputError(
+            "every run stopped before its budget without a final evaluation (each named above): evaluate them, or "
+            "give --include-unfinished to draw them at their last evaluation"
+        )
     opts.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = []
     with warnings.catch_warnings():
@@ -95,27 +101,25 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             if bellman is not None:
                 _write_table(f"bellman_{safe_name(bench)}.md", bellman, opts, written, echo=False)
             plot_negative_transfer(bench, by_label, opts, written)
-            counted = {label: [r for r in group if id(r) not in left_out] for label, group in by_label.items()}
-            counted = {label: group for label, group in counted.items() if group}
-            stats = benchmark_statistics(counted, opts.reps, opts.seed)
+            stats = benchmark_statistics(by_label, opts.reps, opts.seed)
             if stats.scores:
                 plot_profile(bench, stats.scores, opts, written)
                 _write_table(f"table1_{safe_name(bench)}.md", table1(bench, stats, opts.reps, opts.seed), opts, written)
-                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, counted), opts, written, echo=False)
+                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
             _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
     return written
 
 
 def _left_out_runs(runs: Sequence[Run], opts: PlotOptions) -> list[Run]:
     """The runs that stopped before their budget without a final evaluation (none with ``--include-unfinished``),
-    each named in one line on stderr: the final-success statistics leave them out."""
+    each named in one line on stderr: every figure and table leaves them out."""
     left_out = [] if opts.include_unfinished else [run for run in runs if unfinished(run)]
     for run in left_out:
         reached, planned = run_budget(run)
         stopped = "before its budget" if planned is None else f"at {reached or 0:,} of {planned:,} env steps"
         print(
-            f"Left out of Table 1: {run.path} ({run.benchmark}, {run.label}, seed {run.seed}) has no final evaluation "
-            f"and stopped {stopped}; --include-unfinished counts its last evaluation",
+            f"Left out of every figure and table: {run.path} ({run.benchmark}, {run.label}, seed {run.seed}) has no "
+            f"final evaluation and stopped {stopped}; --include-unfinished counts its last evaluation",
             file=sys.stderr,
         )
     return left_out
@@ -163,8 +167,8 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     parser.add_argument(
         "--include-unfinished",
         action="store_true",
-        help="count a run that stopped before its budget without a final evaluation (crashed, killed, still "
-        "training) at its last evaluation (default: left out of Table 1, the profile and the runs table, named)",
+        help="draw a run that stopped before its budget without a final evaluation (crashed, killed, still "
+        "training) and count its last evaluation (default: left out of every figure and table, named)",
     )
     parser.add_argument(
         "--results-dir",
@@ -191,6 +195,8 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     problem = output_folder_error("--out", opts.out)
     if missing:
         problem = f"{missing[0]}: no such folder; give folders of runs (train's -f) or records"
+    if not 0 <= args.seed < 2**32:
+        problem = f"--seed {args.seed}: the bootstrap seed is an int from 0 to 2**32 - 1, e.g. --seed 0"
     if problem:
         parser.exit(2, f"{parser.prog}: error: {problem}\n")
     try:

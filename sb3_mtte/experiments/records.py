@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -154,10 +155,17 @@ def record_path(record: dict[str, Any], out: Path) -> Path:
 
 def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -> list[Path]:
     """Write the record of every run folder under ``runs_dir`` that has a final evaluation into ``out``
-    (:func:`record_path`); two runs that would share a record file stop it before anything is written."""
+    (:func:`record_path`), naming each run skipped (no final evaluation) in one line on stderr; two runs that would
+    share a record file stop it before anything is written."""
     planned: dict[Path, tuple[Run, dict[str, Any]]] = {}
     for run in discover_runs(runs_dir):
         if run.final is None:
+            model = run.path / str(run.info.get("final_model") or f"{run.benchmark}.zip")
+            print(
+                f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation "
+                f"(success.json); evaluate it first: python -m sb3_mtte.evaluate {model} --episodes 50",
+                file=sys.stderr,
+            )
             continue
         record = run_record(run)
         path = record_path(record, Path(out))

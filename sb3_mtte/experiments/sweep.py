@@ -52,6 +52,16 @@ def import_ray() -> Any:
     return ray
 
 
+def repeated_values(args: argparse.Namespace) -> str | None:
+    """The first of ``--algos``, ``--envs``, ``--seeds`` that names a value twice, with that value, or None."""
+    for flag in ("algos", "envs", "seeds"):
+        values = getattr(args, flag)
+        twice = [value for i, value in enumerate(values) if value in values[:i]]
+        if twice:
+            return f"--{flag} {' '.join(map(str, values))}: {twice[0]} is given twice"
+    return None
+
+
 def env_id_for(env: str, budget: str) -> str:
     """The env id of a benchmark at a budget: ``MT10`` + ``smoke`` -> ``MT10-smoke``."""
     if budget not in BUDGETS:
@@ -143,10 +153,10 @@ def write_sweep_file(out: Path, trials: list[dict[str, Any]], args: argparse.Nam
     (out / SWEEP_FILE).write_text(json.dumps(record, indent=2) + "\n")
 
 
-def run_sweep(args: argparse.Namespace, extra: Sequence[str]) -> list[dict[str, Any]]:
-    """Plan the trials, run them on Ray Tune and return them with their status and result."""
-    ray = import_ray()
-    from ray import tune
+def run_sweep(args: argparse.Namespace, extra: Sequence[str], ray: Any) -> list[dict[str, Any]]:
+    """Plan the trials, run them on Ray Tune (``ray``: :func:`import_ray`'s module) and return them with their
+    status and result."""
+    tune = ray.tune
 
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
@@ -247,6 +257,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument("--resume", action="store_true", help="re-run the trials of OUT/sweep.json: skip finished")
     parser.add_argument("--ray-verbose", type=int, default=1, help="Ray Tune verbosity (0-3)")
     args = parser.parse_args(argv)
+    repeated = repeated_values(args)
+    if repeated:
+        parser.error(f"{repeated}: each value once (a repeated one would run the same trials twice)")
     unknown_algos = [algo for algo in args.algos if algo not in algo_classes()]
     if unknown_algos:
         parser.error(f"unknown --algos {' '.join(unknown_algos)}: choose from {' '.join(algo_classes())}")
@@ -262,9 +275,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
                 parser.error(missing)
     problem = output_folder_error("--out", args.out)
     try:
-        import_ray()
+        ray = import_ray()
     except ImportError as error:
         problem = problem or str(error)
     if problem:
         parser.exit(2, f"{parser.prog}: error: {problem}\n")
-    return run_sweep(args, extra)
+    return run_sweep(args, extra, ray)

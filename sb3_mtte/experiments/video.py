@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 from collections.abc import Callable, Iterable, Iterator, Sequence
+import os
 from pathlib import Path
 
 import gymnasium as gym
@@ -66,20 +67,28 @@ def all_task_frames(model: BaseAlgorithm, env: VecEnv, args: argparse.Namespace)
 
 def write_video(frames: Iterable[np.ndarray], path: Path, fps: int, total: int | None = None) -> bool:
     """Write ``frames`` into the mp4 ``path`` one at a time, with a progress bar of ``total`` frames; False (and
-    no file) when there is no frame."""
+    no file) when there is no frame. The video is written under a temporary name (``.partial_<name>``) and renamed
+    when complete: a video stopped midway is removed, never left as an mp4 that does not play."""
     from moviepy.video.io.ffmpeg_writer import FFMPEG_VideoWriter  # loads ffmpeg: only when writing videos
 
+    partial = path.with_name(f".partial_{path.name}")
     writer = None
+    complete = False
     with tqdm(total=total, desc=path.name, unit="frame") as progress:
         try:
             for frame in frames:
                 if writer is None:
-                    writer = FFMPEG_VideoWriter(str(path), (frame.shape[1], frame.shape[0]), fps)
+                    writer = FFMPEG_VideoWriter(str(partial), (frame.shape[1], frame.shape[0]), fps)
                 writer.write_frame(frame)
                 progress.update()
+            complete = True
         finally:
             if writer is not None:
                 writer.close()
+                if complete:
+                    os.replace(partial, path)
+                else:
+                    partial.unlink(missing_ok=True)
     return writer is not None
 
 

@@ -12,6 +12,7 @@ from unittest import mock
 
 from rl_zoo3.utils import StoreDict
 
+from sb3_mtte.experiments.env_ids import benchmark_help
 from sb3_mtte.experiments.variants import algo_classes
 
 TRAIN_DESCRIPTION = (
@@ -83,6 +84,8 @@ class ZooParser(argparse.ArgumentParser):
             add_launcher_options(self.add_argument_group("sb3_mtte options"))
 
     def add_argument(self, *names: Any, **kwargs: Any) -> argparse.Action:
+        if "--env" in names:
+            kwargs["help"] = f"env id: {benchmark_help()}"
         if "--algo" in names:
             kwargs.update(choices=list(algo_classes()), help="zoo key of the algorithm (MTSAC's or MTSACTE's variants)")
         if "--progress" in names:
@@ -92,10 +95,11 @@ class ZooParser(argparse.ArgumentParser):
         return super().add_argument(*names, **kwargs)
 
 
-def zoo_parser(module: ModuleType, description: str, launcher_options: bool = False) -> Any:
+def zoo_parser(module: ModuleType, description: str, launcher_options: bool = False, prog: str | None = None) -> Any:
     """A context manager making the ``argparse.ArgumentParser()`` of rl-zoo's ``module`` (``rl_zoo3.train`` or
-    ``rl_zoo3.enjoy``, which build their parser inside the command) a :class:`ZooParser`."""
-    parser = functools.partial(ZooParser, description=description, launcher_options=launcher_options)
+    ``rl_zoo3.enjoy``, which build their parser inside the command) a :class:`ZooParser` named ``prog`` (how the
+    user called the command)."""
+    parser = functools.partial(ZooParser, prog=prog, description=description, launcher_options=launcher_options)
     return mock.patch.object(module, "argparse", SimpleNamespace(ArgumentParser=parser))
 
 
