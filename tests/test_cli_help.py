@@ -40,7 +40,7 @@ def test_env_help_lists_the_valid_ids(capsys, command):
 
 def test_the_zoo_module_takes_every_command(capsys):
     out = help_text(capsys, cli.zoo_main, ["--help"])
-    assert out.startswith("usage: python -m sb3_mtte.zoo {train,enjoy,record_video,evaluate,plot,record,sweep}")
+    assert out.startswith("usage: python -m sb3_mtte.zoo {train,enjoy,record_video,evaluate,plot,compare,record,sweep}")
     assert help_text(capsys, cli.zoo_main, ["plot", "--help"]).startswith("usage: ")
 
 
