@@ -5,9 +5,10 @@ For each seed, gain and measure (``per_batch``: the paper; ``mean`` and ``signif
 trains MTSACTE on ``toy-conflict`` with its zoo settings (``zoo_configs/mtsacte.yml``) and records mu, C_s and w
 after every iteration's J^rep steps (the values that weight the policy during the iteration). Reports, per measure
 and gain, the fraction of iterations in which the conflicting task (the last one) has the strictly largest mu (over
-the whole run and over its first quarter), whether its mean mu over the first six iterations is strictly the largest,
-its share of C_s and its mean weight, how far w is from uniform (total variation distance, mean over the run and over
-its first quarter), the final success (10 episodes per task) and the env steps until the periodic evaluation first
+the whole run and over its first quarter) and the same over every recomputation (one per J^rep step), whether its
+mean mu over the first six iterations and over the first six recomputations is strictly the largest, its share of
+C_s and its mean weight, how far w is from uniform (total variation distance, mean over the run and over its first
+quarter), the final success (10 episodes per task) and the env steps until the periodic evaluation first
 reaches 90%. Prints one JSON object; ``--out FILE`` also writes it.
 
     python benchmarks/nt_robustness.py --seeds 0 1 2 --out docs/results/nt_robustness.json
@@ -94,6 +95,14 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any], gain: floa
         )
 
     model.update_representation = recorded_update  # type: ignore[method-assign]
+    recomputed: list[list[float]] = []
+    set_selection = model._set_selection
+
+    def recorded_selection(selection: Any) -> None:
+        set_selection(selection)
+        recomputed.append(model.mu.tolist())
+
+    model._set_selection = recorded_selection  # type: ignore[method-assign]
     start = time.perf_counter()
     trace = SuccessTrace(seed)
     model.learn(budget, callback=trace)
@@ -104,6 +113,7 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any], gain: floa
     weights = np.array([r["weights"] for r in records])
     selected = np.array([r["selected"] for r in records], dtype=float)
     singled_out = strictly_largest(mu)
+    every_mu = np.array(recomputed, dtype=float)
     quarter = max(1, len(records) // 4)
     distance = distance_from_uniform(weights)
     reached = [steps for steps, success in trace.trace if success >= 0.9]
@@ -115,6 +125,14 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any], gain: floa
         "conflicting_strictly_largest": float(singled_out.mean()),
         "conflicting_strictly_largest_first_quarter": float(singled_out[:quarter].mean()),
         "conflicting_largest_mean_mu_first_six": bool(strictly_largest(mu[:FIRST_ITERATIONS].mean(axis=0))),
+        "recomputations": len(recomputed),
+        "conflicting_strictly_largest_recomputations": float(strictly_largest(every_mu).mean()),
+        "conflicting_largest_mean_mu_first_six_recomputations": bool(
+            strictly_largest(every_mu[:FIRST_ITERATIONS].mean(axis=0))
+        ),
+        "conflicting_strictly_largest_first_six_recomputations": float(
+            strictly_largest(every_mu[:FIRST_ITERATIONS]).mean()
+        ),
         "conflicting_selected": float(selected[:, -1].mean()),
         "weights_distance_from_uniform": float(distance.mean()),
         "weights_distance_from_uniform_first_quarter": float(distance[:quarter].mean()),
@@ -132,6 +150,8 @@ def run(seed: int, measure: str, budget: int, kwargs: dict[str, Any], gain: floa
 
 SUMMARISED = (
     "conflicting_strictly_largest",
+    "conflicting_strictly_largest_recomputations",
+    "conflicting_strictly_largest_first_six_recomputations",
     "conflicting_strictly_largest_first_quarter",
     "conflicting_selected",
     "conflicting_mean_weight",
