@@ -189,8 +189,9 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
     (unevaluated / "run_info.json").write_text(json.dumps({"algo": "mtsac_mt", "env_id": "MT10", "seed": 0}))
     with pytest.raises(SystemExit) as exit_info:
         records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
-    message = capsys.readouterr().err
-    assert message.count("\n") == 1 and "python -m sb3_mtte.evaluate <run folder>" in message
+    skipped, message = capsys.readouterr().err.splitlines()  # the run it skipped and why, then what to do
+    assert skipped.startswith(f"Skipped {unevaluated} (MT10, mtsac_mt, seed 0)")
+    assert "python -m sb3_mtte.evaluate <run folder>" in message
     (tmp_path / "nothing").mkdir()
     with pytest.raises(SystemExit) as exit_info:
         plot.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "figures")])
