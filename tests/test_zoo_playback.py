@@ -102,12 +102,14 @@ def test_record_video_one_file_per_task(trained_run, tmp_path):
 
 
 class WriterLog:
-    """Stands for moviepy's ffmpeg writer: logs every opened file, written frame and close in ``events``."""
+    """Stands for moviepy's ffmpeg writer: creates the (empty) file and logs every opened video (by the name it is
+    renamed to when complete), written frame and close in ``events``."""
 
     events: list[tuple[str, str]] = []
 
     def __init__(self, filename: str, size: tuple[int, int], fps: float, **options: object) -> None:
-        self.name = Path(filename).name
+        Path(filename).touch()
+        self.name = Path(filename).name.removeprefix(".partial_")
         self.events.append(("open", self.name))
 
     def write_frame(self, frame: np.ndarray) -> None:
