@@ -161,6 +161,7 @@ def _learn_toy(total_timesteps: int, seed: int, **overrides):
     return result, elapsed
 
 
+@pytest.mark.slow  # long: .ci/run runs it after the default suite
 def test_learns_toy_conflict():
     """The full method with its defaults for c_vae, nt_step_size, V_clip and M (small nets, L=64, H=50 vector steps,
     10 J^rep steps per iteration): 16k env steps (4k vector steps, ~45 s of one CPU core) reach a mean success

@@ -159,6 +159,7 @@ def test_success_figure_draws_the_ablations_in_a_panel_of_their_own(tmp_path, mo
     assert "Fig. 7's ablations: success figure" in per_task.get_suptitle()
 
 
+@pytest.mark.slow  # long: .ci/run runs it after the default suite
 def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):
     """docs/figures holds, for every benchmark with records in docs/records, the Table 1, the runs table and the
     aggregate numbers that the README's command draws from them now, and the README shows each of those tables."""

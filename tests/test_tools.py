@@ -368,6 +368,7 @@ def test_sweep_refuses_an_unknown_algorithm_or_benchmark_before_starting_ray(tmp
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.slow  # long (Ray starts): .ci/run runs it after the default suite
 @pytest.mark.skipif(importlib.util.find_spec("ray") is None, reason='needs the ray extra: pip install "ray[tune]"')
 def test_sweep_tiny_grid_on_local_ray(tmp_path):
     import ray
