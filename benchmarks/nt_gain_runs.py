@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from sb3_mtte.experiments.records import distance_from_uniform
+from sb3_mtte.experiments.records import distance_from_uniform, harmful_fraction, transfer_coupling
 from sb3_mtte.experiments.runs import Run, discover_runs, nt_arrays
 from sb3_mtte.experiments.statistics import final_task_scores
 
@@ -55,11 +55,10 @@ def run_gain(run: Run) -> float:
     return float(found.group(1)) if found else DEFAULT_GAIN
 
 
-def off_diagonal(matrices: np.ndarray) -> np.ndarray:
+def off_diagonal_rows(matrices: np.ndarray) -> np.ndarray:
     """``(R, N, N)`` -> ``(R, N, N - 1)``: each row without its diagonal entry."""
     n = matrices.shape[-1]
-    keep = ~np.eye(n, dtype=bool)
-    return matrices[:, keep].reshape(len(matrices), n, n - 1)
+    return matrices[:, ~np.eye(n, dtype=bool)].reshape(len(matrices), n, n - 1)
 
 
 def mean_consecutive_correlation(rows: np.ndarray) -> float:
@@ -79,9 +78,8 @@ def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
     weights = nt_arrays(run, "weights")[1][1:]
     selected = nt_arrays(run, "selected")[1][1:]
     quarter = max(1, len(mu) // 4)
-    off = off_diagonal(matrices)
-    diagonal = np.abs(np.diagonal(matrices, axis1=1, axis2=2)).mean(axis=1)
-    coupling = np.abs(off).mean(axis=(1, 2)) / diagonal
+    harmful = harmful_fraction(matrices)
+    coupling = transfer_coupling(matrices)
     distance = distance_from_uniform(weights)
     probes = [r["task_probe_accuracy"] for r in run.nt_records[1:] if r.get("task_probe_accuracy") is not None]
     scores = final_task_scores(run)
@@ -89,8 +87,8 @@ def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
         "path": str(run.path),
         "seed": run.seed,
         "iterations": len(mu),
-        "harmful_fraction": float((off < 0).mean()),
-        "harmful_fraction_first_quarter": float((off[:quarter] < 0).mean()),
+        "harmful_fraction": float(harmful.mean()),
+        "harmful_fraction_first_quarter": float(harmful[:quarter].mean()),
         "coupling": float(np.median(coupling)),
         "coupling_first_quarter": float(np.median(coupling[:quarter])),
         "mu_consecutive_correlation": mean_consecutive_correlation(mu),
@@ -107,7 +105,9 @@ def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
     }
     if conflicting is not None:
         summary["conflicting_strictly_largest"] = strictly_largest_share(mu, conflicting)
-        summary["conflicting_row_mean"] = float(np.median(off[:, conflicting].mean(axis=1) / diagonal))
+        diagonal = np.abs(np.diagonal(matrices, axis1=1, axis2=2)).mean(axis=1)
+        row = off_diagonal_rows(matrices)[:, conflicting].mean(axis=1)
+        summary["conflicting_row_mean"] = float(np.median(row / diagonal))
     return summary
 
 

@@ -293,8 +293,9 @@ def test_record_of_a_finished_run(tmp_path):
     assert path == tmp_path / "records" / ENV / f"mtsacte_seed{info['seed']}.json"
     sample = json.loads(next((ROOT / "tests" / "data" / "records").rglob("mtsacte_seed0.json")).read_text())
     assert set(record) == set(sample) and set(record["final"]) == set(sample["final"])  # samples keep the format
-    # the samples predate weights_distance, which records made before it lack
-    assert set(record["representation"]) == set(sample["representation"]) | {"weights_distance"}
+    # the samples predate weights_distance, harmful_fraction and coupling, which records made before them lack
+    newer = {"weights_distance", "harmful_fraction", "coupling"}
+    assert set(record["representation"]) == set(sample["representation"]) | newer
     assert set(record["curve"]) == set(sample["curve"])
     assert record["curve"]["episodes_per_task"] == info["hyperparams"]["eval_episodes"]
     assert record["budget"] == {"n_timesteps": 200, "timesteps": 200, "finished": True}

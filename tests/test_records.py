@@ -378,3 +378,19 @@ def test_a_record_keeps_how_far_w_was_from_uniform_at_every_recomputation():
     representation = records.run_record(run)["representation"]
     assert representation["weights_distance"] == pytest.approx([0.0, 0.45, 0.75])
     assert representation["mean_weights"] == pytest.approx([0.65, 0.35 / 3, 0.35 / 3, 0.35 / 3], abs=1e-6)
+
+
+def test_a_record_keeps_the_transfer_matrix_harmful_share_and_coupling():
+    """T1 = [[1, -1], [2, -4]]: one of two off-diagonal entries below zero; |off| mean 1.5 over |diagonal| mean 2.5
+    -> coupling 0.6. T2 = [[2, 0.5], [0.5, -2]]: none harmful; 0.5 / 2 = 0.25."""
+    matrices = [[[1.0, -1.0], [2.0, -4.0]], [[2.0, 0.5], [0.5, -2.0]]]
+    nt = [
+        {"timesteps": 10 * k, "mu": [0, 0], "selected": [1, 1], "weights": [0.5, 0.5], "transfer_matrix": m}
+        for k, m in enumerate(matrices)
+    ]
+    run = Run(Path("x"), {"task_names": ["a", "b"]}, nt_records=nt)
+    representation = records.run_record(run)["representation"]
+    assert representation["harmful_fraction"] == pytest.approx([0.5, 0.0])
+    assert representation["coupling"] == pytest.approx([0.6, 0.25])
+    nt[1].pop("transfer_matrix")  # a log that predates the matrix: no field rather than a wrong one
+    assert "coupling" not in records.run_record(run)["representation"]

@@ -18,8 +18,10 @@ repository. Its fields (format :data:`RECORD_VERSION`):
   Eq. 16 dropped, at up to :data:`TRAINING_POINTS` of the log's dumps (``env_steps``), for Figs. 3 and 6;
 - ``representation`` (MTSACTE): at every recomputation the linear probes of the task from z and from E_phi's mean,
   z's std and how far w is from uniform (``weights_distance``: total variation distance, 0 for uniform weights, at
-  most 1 - 1/N; absent in records made before it); the mean of mu, of w and of C_s membership per task over the
-  run.
+  most 1 - 1/N; absent in records made before it), and from the transfer matrix T the share of its off-diagonal
+  entries below zero (``harmful_fraction``) and mean |T[k, i]| (k != i) over mean |T[k, k]| (``coupling``: how far
+  a virtual step on one task moves the others' objectives next to its own; both absent in records made before
+  them); the mean of mu, of w and of C_s membership per task over the run.
 
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
 Meta-World's v1 rewards; the default ``--out`` is ``docs/records``)::
@@ -90,6 +92,26 @@ def distance_from_uniform(weights: np.ndarray) -> np.ndarray:
     return 0.5 * np.abs(weights - 1.0 / weights.shape[-1]).sum(axis=-1)
 
 
+def _off_diagonal(matrices: np.ndarray) -> np.ndarray:
+    """``(..., N, N)`` -> ``(..., N * (N - 1))``: the off-diagonal entries of each matrix."""
+    n = matrices.shape[-1]
+    return matrices[..., ~np.eye(n, dtype=bool)]
+
+
+def harmful_fraction(matrices: np.ndarray) -> np.ndarray:
+    """Per transfer matrix ``(..., N, N)`` (entry [k, i] = J_i(theta^k) - J_i(theta)): the share of its off-diagonal
+    entries below zero, the pairs Eq. 6 counts as harmful."""
+    return (_off_diagonal(np.asarray(matrices, dtype=float)) < 0).mean(axis=-1)
+
+
+def transfer_coupling(matrices: np.ndarray) -> np.ndarray:
+    """Per transfer matrix ``(..., N, N)``: mean |T[k, i]| over k != i divided by mean |T[k, k]| (0: a virtual step on
+    one task leaves the other tasks' objectives where they were)."""
+    matrices = np.asarray(matrices, dtype=float)
+    diagonal = np.abs(np.diagonal(matrices, axis1=-2, axis2=-1)).mean(axis=-1)
+    return np.abs(_off_diagonal(matrices)).mean(axis=-1) / diagonal
+
+
 def _representation(run: Run) -> dict[str, Any] | None:
     """MTSACTE: probes, z's std and w's distance from uniform at every recomputation, and mu and w averaged over
     the run."""
@@ -100,6 +122,10 @@ def _representation(run: Run) -> dict[str, Any] | None:
     for key in PROBE_KEYS:
         summary[key] = [None if r.get(key) is None else round(float(r[key]), 6) for r in records]
     summary["weights_distance"] = distance_from_uniform([r["weights"] for r in records]).round(6).tolist()
+    if all("transfer_matrix" in r for r in records):
+        matrices = np.array([r["transfer_matrix"] for r in records], dtype=float)
+        summary["harmful_fraction"] = harmful_fraction(matrices).round(6).tolist()
+        summary["coupling"] = transfer_coupling(matrices).round(6).tolist()
     summary["mean_mu"] = np.mean([r["mu"] for r in records], axis=0).round(4).tolist()
     summary["mean_weights"] = np.mean([r["weights"] for r in records], axis=0).round(6).tolist()
     summary["selected_fraction"] = np.mean([r["selected"] for r in records], axis=0).round(4).tolist()
