@@ -160,6 +160,34 @@ def study(sources: list[Path], conflicting: dict[str, int]) -> dict[str, Any]:
     }
 
 
+TABLE_COLUMNS = (
+    ("harmful_fraction", "off-diagonal entries of T below 0: run", "{:.0%}"),
+    ("harmful_fraction_first_quarter", "first quarter", "{:.0%}"),
+    ("coupling", "coupling: run", "{:.3f}"),
+    ("coupling_first_quarter", "first quarter", "{:.3f}"),
+    ("mu_consecutive_correlation", "r of consecutive mu", "{:+.2f}"),
+    ("weights_distance", "w from uniform", "{:.2f}"),
+    ("probe_of_sampled_z", "probe of sampled z", "{:.2f}"),
+    ("final_success", "final success", "{:.1%}"),
+)
+
+
+def markdown_table(summary: dict[str, dict[str, Any]]) -> str:
+    """One row per group: mean ± std over seeds of the TABLE_COLUMNS."""
+    lines = [
+        "| benchmark, gain | seeds | " + " | ".join(title for _, title, _ in TABLE_COLUMNS) + " |",
+        "|---|---|" + "--:|" * len(TABLE_COLUMNS),
+    ]
+    for group, values in summary.items():
+        cells = []
+        for key, _, form in TABLE_COLUMNS:
+            mean, std = values.get(key, (float("nan"), float("nan")))
+            cells.append(form.format(mean) + (" ± " + form.format(std).lstrip("+") if len(values["seeds"]) > 1 else ""))
+        seeds = ", ".join(map(str, values["seeds"]))
+        lines.append(f"| {group} | {seeds} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
 def parse_conflicting(items: list[str]) -> dict[str, int]:
     pairs = {}
     for item in items:
@@ -175,13 +203,14 @@ def main() -> None:
     parser.add_argument("sources", nargs="+", type=Path, help="folders holding MTSACTE run folders")
     parser.add_argument("--conflicting", nargs="*", default=[], help="BENCHMARK=TASK_INDEX of a known conflict")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("--markdown", action="store_true", help="print the summary as a markdown table")
     args = parser.parse_args()
     result = study(args.sources, parse_conflicting(args.conflicting))
     result["command"] = "python benchmarks/nt_gain_runs.py " + " ".join(
         [*map(str, args.sources), *(["--conflicting", *args.conflicting] if args.conflicting else [])]
     )
     text = json.dumps(result, indent=1)
-    print(json.dumps(result["summary"], indent=1))
+    print(markdown_table(result["summary"]) if args.markdown else json.dumps(result["summary"], indent=1))
     if args.out is not None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(text + "\n")

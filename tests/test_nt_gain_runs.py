@@ -78,3 +78,12 @@ def test_gain_of_each_form_of_policy_kwargs(tmp_path):
 def test_bad_conflicting_argument_names_the_form():
     with pytest.raises(SystemExit, match="BENCHMARK=TASK_INDEX"):
         nt_gain_runs.parse_conflicting(["toy-conflict"])
+
+
+def test_markdown_table_row_of_one_seed(tmp_path):
+    write_run(tmp_path / "toy_gain1" / "toy-conflict_5", {"z_mean_init_gain": 1})
+    table = nt_gain_runs.markdown_table(nt_gain_runs.study([tmp_path / "toy_gain1"], {})["summary"])
+    row = table.splitlines()[2]
+    assert (
+        row == "| toy-conflict, gain 1 | 4 | 39% | 50% | 0.200 | 0.150 | +1.00 | 0.18 | 0.70 | 50.0% |"
+    )  # w: 2/3 of 0.27
