@@ -2,8 +2,8 @@
 folders and grouped by benchmark and gain.
 
 Each line of a run's ``negative_transfer.jsonl`` holds one iteration's last recomputation: the transfer matrix T
-(entry [k, i] = J_i(theta^k) - J_i(theta), Eq. 5), mu (Eq. 6), C_s (Eq. 7) and w (Eq. 8). The first line (the
-initial uniform w, before any J^rep step) is left out. Per run:
+(entry [k, i] = J_i(theta^k) - J_i(theta), Eq. 5), mu (Eq. 6), C_s (Eq. 7) and w (Eq. 8), written after its
+J^rep steps. Per run:
 
 - ``harmful_fraction``: the share of off-diagonal entries of T below zero (the pairs mu counts), over the run and
   over its first quarter;
@@ -73,15 +73,15 @@ def strictly_largest_share(mu: np.ndarray, task: int) -> float:
 
 
 def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
-    matrices = nt_arrays(run, "transfer_matrix")[1][1:]
-    mu = nt_arrays(run, "mu")[1][1:]
-    weights = nt_arrays(run, "weights")[1][1:]
-    selected = nt_arrays(run, "selected")[1][1:]
+    matrices = nt_arrays(run, "transfer_matrix")[1]
+    mu = nt_arrays(run, "mu")[1]
+    weights = nt_arrays(run, "weights")[1]
+    selected = nt_arrays(run, "selected")[1]
     quarter = max(1, len(mu) // 4)
     harmful = harmful_fraction(matrices)
     coupling = transfer_coupling(matrices)
     distance = distance_from_uniform(weights)
-    probes = [r["task_probe_accuracy"] for r in run.nt_records[1:] if r.get("task_probe_accuracy") is not None]
+    probes = [r["task_probe_accuracy"] for r in run.nt_records if r.get("task_probe_accuracy") is not None]
     scores = final_task_scores(run)
     summary: dict[str, Any] = {
         "path": str(run.path),
@@ -145,7 +145,7 @@ def study(sources: list[Path], conflicting: dict[str, int]) -> dict[str, Any]:
     task_names: dict[str, list[str]] = {}
     for source in sources:
         for run in discover_runs(source):
-            if len(run.nt_records) < 2:
+            if not run.nt_records:
                 continue
             bench = str(run.info.get("env_id", run.benchmark))
             base = bench.split("-cpu")[0]

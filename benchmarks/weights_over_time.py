@@ -60,14 +60,14 @@ def main() -> None:
     for source in args.sources:
         for log in sorted(source.rglob("negative_transfer.jsonl")):
             name, steps, weights = from_run_folder(log.parent)
-            report(name, steps[1:], distance_from_uniform(weights)[1:], weights[1:], args.window)
+            report(name, steps, distance_from_uniform(weights), weights, args.window)
         for path in sorted(source.rglob("*.json")):
             record = json.loads(path.read_text())
             representation = record.get("representation") if isinstance(record, dict) else None
             if representation and "weights_distance" in representation:
                 steps = np.array(representation["env_steps"], dtype=float) / record["n_tasks"]
                 name = f"{record['label']} seed {record['seed']} (record)"
-                report(name, steps[1:], np.array(representation["weights_distance"])[1:], None, args.window)
+                report(name, steps, np.array(representation["weights_distance"]), None, args.window)
 
 
 if __name__ == "__main__":

@@ -15,7 +15,6 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 import nt_gain_runs  # noqa: E402
 
-FIRST = [[1.0, -5.0, -5.0], [-5.0, 1.0, -5.0], [-5.0, -5.0, 1.0]]  # the initial line: left out
 T1 = [[1.0, -0.1, 0.2], [0.1, 2.0, -0.2], [-0.3, 0.3, 1.0]]
 T2 = [[2.0, 0.4, 0.4], [0.4, 2.0, 0.4], [-0.4, -0.4, 2.0]]
 
@@ -32,10 +31,10 @@ def write_run(folder: Path, policy_kwargs: object) -> Path:
     info["hyperparams"] = {"policy_kwargs": policy_kwargs}
     (folder / "run_info.json").write_text(json.dumps(info))
     lines = []
-    iterations = [(FIRST, [3, 3, 3], [1, 1, 1]), (T1, [1, 1, 1], [1, 1, 1])] + [(T2, [0, 0, 2], [1, 1, 0])] * 2
+    iterations = [(T1, [1, 1, 1], [1, 1, 1])] + [(T2, [0, 0, 2], [1, 1, 0])] * 2
     for step, (matrix, mu, selected) in enumerate(iterations):
-        record = {"timesteps": 150 * step, "mu": mu, "selected": selected, "weights": softmax_weights(mu)}
-        record.update(transfer_matrix=matrix, task_probe_accuracy=0.5 + 0.1 * step)
+        record = {"timesteps": 150 * (step + 1), "mu": mu, "selected": selected, "weights": softmax_weights(mu)}
+        record.update(transfer_matrix=matrix, task_probe_accuracy=0.6 + 0.1 * step)
         lines.append(json.dumps(record))
     (folder / "negative_transfer.jsonl").write_text("\n".join(lines) + "\n")
     (folder / "success.json").write_text(json.dumps({"per_task": {"a": 1.0, "b": 0.5, "c": 0.0}}))
