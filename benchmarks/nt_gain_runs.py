@@ -19,6 +19,7 @@ J^rep steps. Per run:
   off the diagonal over mean |T[k, k]| (below 0: its step lowers the other tasks' objectives on average);
 - final success (``success.json``, else the last evaluation) and the mean task probe of sampled z.
 
+Runs still training (or stopped before their budget) are skipped, with a line naming them, unless ``--running``.
 Summaries are [mean, std] over seeds; ``most_harmful_agree`` counts the seeds whose most harmful task on average is
 the group's most common one.
 
@@ -32,6 +33,7 @@ import argparse
 import itertools
 import json
 import re
+import sys
 from collections import Counter
 from pathlib import Path
 from typing import Any
@@ -40,7 +42,7 @@ import numpy as np
 
 from sb3_mtte.experiments.records import distance_from_uniform, harmful_fraction, transfer_coupling
 from sb3_mtte.experiments.runs import Run, discover_runs, nt_arrays
-from sb3_mtte.experiments.statistics import final_task_scores
+from sb3_mtte.experiments.statistics import final_task_scores, unfinished
 
 
 DEFAULT_GAIN = 50.0  # MTSACTEPolicy's z_mean_init_gain
@@ -140,12 +142,13 @@ def group_summary(runs: list[dict[str, Any]]) -> dict[str, Any]:
     return summary
 
 
-def study(sources: list[Path], conflicting: dict[str, int]) -> dict[str, Any]:
+def study(sources: list[Path], conflicting: dict[str, int], running: bool = False) -> dict[str, Any]:
     groups: dict[str, list[dict[str, Any]]] = {}
     task_names: dict[str, list[str]] = {}
     for source in sources:
         for run in discover_runs(source):
-            if not run.nt_records:
+            if not run.nt_records or (unfinished(run) and not running):
+                print(f"skipped {run.path}: no negative_transfer.jsonl or still training", file=sys.stderr)
                 continue
             bench = str(run.info.get("env_id", run.benchmark))
             base = bench.split("-cpu")[0]
@@ -203,9 +206,10 @@ def main() -> None:
     parser.add_argument("sources", nargs="+", type=Path, help="folders holding MTSACTE run folders")
     parser.add_argument("--conflicting", nargs="*", default=[], help="BENCHMARK=TASK_INDEX of a known conflict")
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    parser.add_argument("--running", action="store_true", help="also read runs still training")
     parser.add_argument("--markdown", action="store_true", help="print the summary as a markdown table")
     args = parser.parse_args()
-    result = study(args.sources, parse_conflicting(args.conflicting))
+    result = study(args.sources, parse_conflicting(args.conflicting), args.running)
     result["command"] = "python benchmarks/nt_gain_runs.py " + " ".join(
         [*map(str, args.sources), *(["--conflicting", *args.conflicting] if args.conflicting else [])]
     )

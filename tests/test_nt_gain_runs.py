@@ -86,3 +86,16 @@ def test_markdown_table_row_of_one_seed(tmp_path):
     assert (
         row == "| toy-conflict, gain 1 | 4 | 39% | 50% | 0.200 | 0.150 | +1.00 | 0.18 | 0.70 | 50.0% |"
     )  # w: 2/3 of 0.27
+
+
+def test_a_run_still_training_is_left_out(tmp_path, capsys):
+    write_run(tmp_path / "runs" / "done_1", {"z_mean_init_gain": 1})
+    running = write_run(tmp_path / "runs" / "running_1", {"z_mean_init_gain": 1})
+    (running / "success.json").unlink()
+    info = json.loads((running / "run_info.json").read_text())
+    info["hyperparams"]["n_timesteps"] = 10_000
+    (running / "run_info.json").write_text(json.dumps(info))
+    result = nt_gain_runs.study([tmp_path / "runs"], {})
+    assert [r["path"] for r in result["runs"]["toy-conflict, gain 1"]] == [str(tmp_path / "runs" / "done_1")]
+    assert f"skipped {running}" in capsys.readouterr().err
+    assert len(nt_gain_runs.study([tmp_path / "runs"], {}, running=True)["runs"]["toy-conflict, gain 1"]) == 2
