@@ -23,8 +23,8 @@ Runs still training (or stopped before their budget) are skipped, with a line na
 Summaries are [mean, std] over seeds; ``most_harmful_agree`` counts the seeds whose most harmful task on average is
 the group's most common one.
 
-    python benchmarks/nt_gain_runs.py /work/runs/dev6_gain1 /work/runs/dev6_gain50 /work/runs/toy_gain1 \
-        /work/runs/toy_gain50 --conflicting toy-conflict=3 --out docs/results/nt_gain_runs.json
+    python benchmarks/nt_gain_runs.py runs/dev6_gain1 runs/dev6_gain50 runs/toy_gain1 \
+        runs/toy_gain50 --conflicting toy-conflict=3 --out docs/results/nt_gain_runs.json
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ set by each iteration's last recomputation; 0: uniform; at most 1 - 1/N), and, f
 consecutive iterations' w (near 1: the same tasks weighted up from one iteration to the next; near 0: a new draw each
 time) and the task weighted most on average over the window.
 
-    python benchmarks/weights_over_time.py /work/runs/logs/mtsacte docs/records/MT10-100k --window 20000
+    python benchmarks/weights_over_time.py runs/mt10_100k/mtsacte docs/records/MT10-100k --window 20000
 """
 
 from __future__ import annotations
