@@ -57,21 +57,15 @@ def run_gain(run: Run) -> float:
     return float(found.group(1)) if found else DEFAULT_GAIN
 
 
-def off_diagonal_rows(matrices: np.ndarray) -> np.ndarray:
-    """``(R, N, N)`` -> ``(R, N, N - 1)``: each row without its diagonal entry."""
-    n = matrices.shape[-1]
-    return matrices[:, ~np.eye(n, dtype=bool)].reshape(len(matrices), n, n - 1)
-
-
 def mean_consecutive_correlation(rows: np.ndarray) -> float:
     """Mean Pearson's r of consecutive rows, over the pairs where neither row is constant (to 1e-9; nan when none)."""
     pairs = [np.corrcoef(a, b)[0, 1] for a, b in itertools.pairwise(rows) if np.ptp(a) > 1e-9 and np.ptp(b) > 1e-9]
     return float(np.mean(pairs)) if pairs else float("nan")
 
 
-def strictly_largest_share(mu: np.ndarray, task: int) -> float:
-    others = np.delete(mu, task, axis=-1).max(axis=-1)
-    return float((mu[:, task] > others).mean())
+def strictly_largest(mu: np.ndarray, task: int = -1) -> np.ndarray:
+    """Per row of ``mu`` ``(..., tasks)``: whether task ``task``'s value is strictly the largest (default: the last)."""
+    return mu[..., task] > np.delete(mu, task, axis=-1).max(axis=-1)
 
 
 def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
@@ -106,9 +100,9 @@ def run_summary(run: Run, conflicting: int | None) -> dict[str, Any]:
         "final_success_per_task": None if scores is None else scores.round(4).tolist(),
     }
     if conflicting is not None:
-        summary["conflicting_strictly_largest"] = strictly_largest_share(mu, conflicting)
+        summary["conflicting_strictly_largest"] = float(strictly_largest(mu, conflicting).mean())
         diagonal = np.abs(np.diagonal(matrices, axis1=1, axis2=2)).mean(axis=1)
-        row = off_diagonal_rows(matrices)[:, conflicting].mean(axis=1)
+        row = np.delete(matrices[:, conflicting], conflicting, axis=-1).mean(axis=1)
         summary["conflicting_row_mean"] = float(np.median(row / diagonal))
     return summary
 

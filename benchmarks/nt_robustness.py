@@ -34,6 +34,8 @@ from sb3_mtte import MTSACTE, __version__, evaluate_success, make_mt_env
 from sb3_mtte.experiments.configs import find_config_dir
 from sb3_mtte.experiments.records import distance_from_uniform
 
+from nt_gain_runs import strictly_largest  # benchmarks/, beside this script
+
 BENCHMARK = "toy-conflict"
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
 
@@ -65,12 +67,6 @@ class SuccessTrace(BaseCallback):
             result = evaluate_success(self.model, BENCHMARK, episodes_per_task=5, seed=self.seed + 2000)
             self.trace.append((self.num_timesteps, result.mean))
         return True
-
-
-def strictly_largest(mu: np.ndarray) -> np.ndarray:
-    """Per row of ``mu`` ``(..., tasks)``: whether the last task's value is strictly the largest."""
-    last = mu.shape[-1] - 1
-    return mu[..., last] > np.delete(mu, last, axis=-1).max(axis=-1)
 
 
 FIRST_ITERATIONS = 6

@@ -12,13 +12,14 @@ time) and the task weighted most on average over the window.
 from __future__ import annotations
 
 import argparse
-import itertools
 import json
 from pathlib import Path
 
 import numpy as np
 
 from sb3_mtte.experiments.records import distance_from_uniform
+
+from nt_gain_runs import mean_consecutive_correlation  # benchmarks/, beside this script
 
 
 def from_run_folder(path: Path) -> tuple[str, np.ndarray, np.ndarray]:
@@ -47,8 +48,8 @@ def report(name: str, steps: np.ndarray, distance: np.ndarray, weights: np.ndarr
         line = f"  {low / 1000:6.1f}k-{high / 1000:6.1f}k: distance {distance[inside].mean():.3f}"
         if weights is not None and inside.sum() > 2:
             w = weights[inside]
-            corr = [np.corrcoef(a, b)[0, 1] for a, b in itertools.pairwise(w) if a.std() and b.std()]
-            line += f", consecutive correlation {np.mean(corr):+.2f}, most weighted task {int(w.mean(0).argmax())}"
+            line += f", consecutive correlation {mean_consecutive_correlation(w):+.2f}"
+            line += f", most weighted task {int(w.mean(0).argmax())}"
         print(line)
 
 

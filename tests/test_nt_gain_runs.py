@@ -8,6 +8,7 @@ import math
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -99,3 +100,12 @@ def test_a_run_still_training_is_left_out(tmp_path, capsys):
     assert [r["path"] for r in result["runs"]["toy-conflict, gain 1"]] == [str(tmp_path / "runs" / "done_1")]
     assert f"skipped {running}" in capsys.readouterr().err
     assert len(nt_gain_runs.study([tmp_path / "runs"], {}, running=True)["runs"]["toy-conflict, gain 1"]) == 2
+
+
+def test_a_conflicting_task_other_than_the_last(tmp_path):
+    """Task 0: its off-diagonal row is (-0.1 + 0.2) / 2 over 4/3, then 0.4 / 2 twice; never strictly largest."""
+    write_run(tmp_path / "toy_gain1" / "toy-conflict_5", {"z_mean_init_gain": 1})
+    (run,) = nt_gain_runs.study([tmp_path / "toy_gain1"], {"toy-conflict": 0})["runs"]["toy-conflict, gain 1"]
+    assert run["conflicting_row_mean"] == pytest.approx(0.2)
+    assert run["conflicting_strictly_largest"] == 0.0
+    assert nt_gain_runs.strictly_largest(np.array([[3, 1, 2], [1, 1, 0]]), 0).tolist() == [True, False]
