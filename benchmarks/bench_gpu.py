@@ -4,10 +4,10 @@ per task); prints one JSON object (``docs/results/gpu_check.json`` on a GPU). Tw
 - ``updates``: updates/s of every variant at each N on synthetic Meta-World-shaped batches (2 x 400 nets, L = 128
   per task), eager and fast timed round-robin;
 - ``end_to_end``: env steps/s of ``learn()`` on MT10 and MT50 for MTSAC and MTSACTE after learning starts, eager
-  (``update_path="eager"``, host buffer, tasks stepped one after another) and fast (``SubprocVecEnv`` when the
-  machine has a core per task), and the hours the paper's budget then takes.
+  (``update_path="eager"``, host buffer, tasks stepped one after another) and fast (``SubprocVecEnv`` where
+  ``default_vec_env`` picks it: at least 4 cores), and the hours the paper's budget then takes.
 
-"Fast" is what ``update_path="auto"`` and ``storage="auto"`` pick once the fast path is the default
+"Fast" is what ``update_path="auto"`` and ``storage="auto"`` pick with the fast path as the default
 (:data:`sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`, set here): the graph where the update's hooks allow it,
 the GPU's replay storage. ``--out`` writes the JSON after every part; a file there from the same device and torch
 keeps the parts this run does not measure, so two runs, one per part, make one file.

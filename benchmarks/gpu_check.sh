@@ -1,16 +1,20 @@
 #!/usr/bin/env bash
-# The device check of the fast path (the update as a CUDA graph, the replay buffer on the GPU: opt-in until this has
-# passed on a GPU) on one CUDA GPU, downloading nothing, in two parts, each well inside one 9-minute call on one H100:
+# The device check of the fast path (the update as a CUDA graph, the replay buffer on the GPU: the default on CUDA
+# since this passed on an H200) on one CUDA GPU, downloading nothing, in parts that each fit well inside one 9-minute
+# call (on one H200: updates 67 s, end_to_end 193 s, profile 178 s):
 #   updates     the CUDA tests (the graph gives the eager path's parameters, entropy coefficients, mu and w for every
 #               variant it holds; the device and pinned storages give the host's batches; every algorithm trains,
 #               saves and loads on CUDA, on the eager path and on the fast path), then benchmarks/bench_gpu.py's
 #               updates/s of every variant at N = 10, 20, 50, eager against fast;
 #   end_to_end  MT10, then MT50, end to end for MTSAC and MTSACTE, eager against fast, and the hours the paper's
-#               budget takes.
-# With no argument, both (a user with a GPU). Writes ${OUT:-gpu_check}/: tests.log (updates) and gpu_check.json,
-# after every part; a gpu_check.json already there from the same device and torch keeps the other part's figures,
-# so copy the first call's file there before the second. It goes to docs/results/gpu_check.json. Exits non-zero
-# when a test or a measurement fails.
+#               budget takes;
+#   profile     where the fast path's time goes in learn() (benchmarks/profile_gpu.py: each stage of a vector step,
+#               the device's busy share, the top ops by device and host time, env stepping alone per VecEnv class),
+#               into gpu_profile.json (docs/results/gpu_profile.json).
+# With no argument, updates and end_to_end (a user with a GPU). Writes ${OUT:-gpu_check}/: tests.log (updates) and
+# gpu_check.json, after every part; a gpu_check.json already there from the same device and torch keeps the other
+# part's figures, so copy the first call's file there before the second. It goes to docs/results/gpu_check.json.
+# Exits non-zero when a test or a measurement fails.
 #
 # The machine needs PyTorch with CUDA and the wheels in .whl/ (ignored by git): the package's runtime dependencies
 # that its image lacks (benchmarks/gpu_wheels.txt; the image's packages are benchmarks/device_packages.txt) and the
@@ -18,6 +22,7 @@
 #   bash benchmarks/gpu_wheels.sh             # with a package registry, into .whl/
 #   bash benchmarks/gpu_check.sh updates      # on the GPU machine, from the repository root: the first call
 #   bash benchmarks/gpu_check.sh end_to_end   # the second call
+#   bash benchmarks/gpu_check.sh profile      # a third, where a target is missed
 # DRY_RUN=1 runs every step on the CPU at toy sizes in a venv made from nothing but the GPU machine's packages and
 # the carried wheels (benchmarks/device_venv.py; DRY_RUN_PYTHON and DRY_RUN_TORCH stand in for the machine's Python
 # and torch, default python3.11 and torch==2.13.0; DRY_RUN_VENV is its folder), so that an import the machine
@@ -28,8 +33,9 @@ parts=("$@")
 [ ${#parts[@]} -gt 0 ] || parts=(updates end_to_end)
 for part in "${parts[@]}"; do
     case "$part" in
-        updates | end_to_end) ;;
-        *) echo "gpu_check.sh: unknown part '$part': give updates, end_to_end or nothing (both)." >&2; exit 2 ;;
+        updates | end_to_end | profile) ;;
+        *) echo "gpu_check.sh: unknown part '$part': give updates, end_to_end, profile or nothing (the first two)." >&2
+           exit 2 ;;
     esac
 done
 out="${OUT:-gpu_check}"
@@ -43,6 +49,7 @@ if [ "${DRY_RUN:-0}" = 1 ]; then
     tests=(-k "not cuda")
     updates=(--n-tasks 10 --repeats 3 --device cpu)
     end_to_end=(--benchmarks MT10 --vector-steps 20 --device cpu)
+    profile=(--benchmarks MT10 --vector-steps 5 --device cpu)
 else
     python=python3
     if compgen -G ".whl/*.whl" > /dev/null; then
@@ -55,6 +62,7 @@ else
     tests=(-k cuda)
     updates=(--n-tasks 10 20 50 --repeats 11 --device cuda)
     end_to_end=(--benchmarks MT10 MT50 --vector-steps 300 --device cuda)
+    profile=(--benchmarks MT10 MT50 --vector-steps 100 --device cuda)
 fi
 bench() {
     (cd benchmarks && "$python" bench_gpu.py --out "$out/gpu_check.json" "$@") > /dev/null
@@ -66,11 +74,14 @@ for part in "${parts[@]}"; do
             tests/test_device.py 2>&1 | tee "$out/tests.log" | tail -6
         [ "${PIPESTATUS[0]}" = 0 ] || status=1
         bench --parts updates "${updates[@]}" || exit 1
-    else
+    elif [ "$part" = end_to_end ]; then
         bench --parts end_to_end "${end_to_end[@]}" || exit 1
+    else
+        (cd benchmarks && "$python" profile_gpu.py --out "$out/gpu_profile.json" "${profile[@]}") > /dev/null || exit 1
+        echo "wrote $out/gpu_profile.json"
     fi
 done
-"$python" - "$out/gpu_check.json" <<'PY'
+[ -f "$out/gpu_check.json" ] && "$python" - "$out/gpu_check.json" <<'PY'
 import json, sys
 report = json.load(open(sys.argv[1]))
 print(report["device_name"], report["torch"], "update speedup at N = 10:", report.get("update_speedup_n10"))

@@ -131,17 +131,17 @@ def test_a_missing_dependency_is_caught():
 
 # ------------------------------------------------------------------------------------------------ the device check
 def device_check_modules() -> list[str]:
-    """What ``benchmarks/gpu_check.sh`` imports: ``bench_gpu`` (run from benchmarks/), and conftest and the test
-    modules it names."""
+    """What ``benchmarks/gpu_check.sh`` imports: ``bench_gpu`` and ``profile_gpu`` (run from benchmarks/), and
+    conftest and the test modules it names."""
     script = (ROOT / "benchmarks" / "gpu_check.sh").read_text()
     tests = sorted(set(re.findall(r"tests/(test_\w+)\.py", script)))
     assert tests, "gpu_check.sh names no test file"
-    return ["bench_gpu", "conftest", *tests]
+    return ["bench_gpu", "profile_gpu", "conftest", *tests]
 
 
 def test_the_device_check_imports_only_what_the_gpu_machine_has():
-    """``bench_gpu.py`` and the tests of the device check import nothing beyond the GPU machine's packages
-    (``benchmarks/device_packages.txt``), the wheels the check carries (``benchmarks/gpu_wheels.txt``) and the
+    """``bench_gpu.py``, ``profile_gpu.py`` and the tests of the device check import nothing beyond the GPU machine's
+    packages (``benchmarks/device_packages.txt``), the wheels the check carries (``benchmarks/gpu_wheels.txt``) and the
     package: rl-zoo3, sb3-contrib, huggingface_sb3, optuna, ray, rliable are not there."""
     allowed = package_names(ROOT / "benchmarks" / "device_packages.txt") | {"sb3-mtte"}
     blocked = modules_outside(allowed | package_names(ROOT / "benchmarks" / "gpu_wheels.txt"))

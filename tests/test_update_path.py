@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import csv
 from collections import namedtuple
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -160,10 +161,13 @@ def test_a_new_batch_size_is_warmed_up_again_before_its_capture():
     assert on_static_inputs == [False, False, False, True, True, False, False, False, True]
 
 
-def test_auto_takes_the_eager_update_and_the_host_buffer_on_cuda_until_the_fast_path_has_run(monkeypatch):
-    """No default that has never run on a GPU: ``"auto"`` is eager and the host's buffer on CUDA too; with the fast
-    path as the default, the graph wherever the update's hooks allow it, and the GPU's buffer where it fits."""
-    assert not gpu_defaults.FAST_PATH_BY_DEFAULT
+def test_auto_takes_the_fast_path_on_cuda_once_the_device_check_has_run(monkeypatch):
+    """No default that has never run on a GPU: the fast path is the default exactly when the device check's report
+    is committed. Without it, ``"auto"`` is eager and the host's buffer on CUDA too; with it, the graph wherever the
+    update's hooks allow it, and the GPU's buffer where it fits."""
+    report = Path(__file__).resolve().parents[1] / "docs" / "results" / "gpu_check.json"
+    assert gpu_defaults.FAST_PATH_BY_DEFAULT == report.exists()
+    monkeypatch.setattr(gpu_defaults, "FAST_PATH_BY_DEFAULT", False)
     cuda = th.device("cuda")
     for case in CASES:
         model = build_case(case)

@@ -147,14 +147,19 @@ class _TaskEnvFn:
             _TASK_CONTEXT.reset(token)
 
 
+SUBPROC_MIN_CORES = 4
+"""The fewest cores on which Meta-World's tasks stepped in subprocesses beat stepping them one after another (env
+stepping alone, MT10: no faster on 2 cores, 1.57x on 4; MT50 on 16 cores: 5.9x; docs/performance.md)."""
+
+
 def default_vec_env(env_id: str, cpu_count: int | None = None) -> str:
     """rl-zoo's ``--vec-env`` when none is given: ``"subproc"`` (one process per task, stepped in parallel) for a
-    Meta-World benchmark on a machine with a core per task and one for the learner, else ``"dummy"`` (a toy's steps
-    cost less than a message to a process)."""
+    Meta-World benchmark of several tasks on a machine with at least :data:`SUBPROC_MIN_CORES` cores, else
+    ``"dummy"`` (a toy's steps cost less than a message to a process)."""
     cores = os.cpu_count() if cpu_count is None else cpu_count
     if parse_toy_name(split_env_id(env_id)[0]) is not None:
         return "dummy"
-    return "subproc" if (cores or 1) > env_id_n_tasks(env_id) else "dummy"
+    return "subproc" if env_id_n_tasks(env_id) > 1 and (cores or 1) >= SUBPROC_MIN_CORES else "dummy"
 
 
 class MultiTaskVecEnvFactory:
