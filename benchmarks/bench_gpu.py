@@ -100,6 +100,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument(
         "--out", default=None, help="also write the JSON here, after every part (a later crash keeps it)"
     )
+    parser.add_argument("--tests-log", default=None, help="with the updates: the CUDA tests' pytest output")
+    parser.add_argument("--tests-rc", type=int, default=None, help="with --tests-log: pytest's exit status")
     args = parser.parse_args(argv)
     gpu_defaults.FAST_PATH_BY_DEFAULT = True  # "fast": what "auto" then picks
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
@@ -111,6 +113,8 @@ def main(argv: list[str] | None = None) -> dict:
         "cpu_count": os.cpu_count(),
     }
     report = {**earlier_parts(args.out, report), **report}
+    if args.tests_log is not None:
+        report["cuda_tests"] = cuda_tests(args.tests_log, args.tests_rc)
     if "updates" in args.parts:
         report["updates"] = []
         for n_tasks in args.n_tasks:
@@ -126,6 +130,13 @@ def main(argv: list[str] | None = None) -> dict:
         write(report, args.out)
     print(json.dumps(report, indent=1))
     return report
+
+
+def cuda_tests(log_path: str, rc: int | None) -> dict:
+    """The CUDA tests' outcome: pytest's summary line (the log's last line) and its exit status."""
+    with open(log_path) as file:
+        lines = [line.strip() for line in file if line.strip()]
+    return {"summary": lines[-1] if lines else "", "rc": rc}
 
 
 def earlier_parts(path: str | None, machine: dict) -> dict:

@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # The device check of the fast path (the update as a CUDA graph, the replay buffer on the GPU: the default on CUDA
 # since this passed on an H200) on one CUDA GPU, downloading nothing, in parts that each fit well inside one 9-minute
-# call (on one H200: updates 67 s, end_to_end 193 s, profile 178 s):
+# call (on one H200: updates 67 s, end_to_end 193 s, profile about 3 min):
 #   updates     the CUDA tests (the graph gives the eager path's parameters, entropy coefficients, mu and w for every
 #               variant it holds; the device and pinned storages give the host's batches; every algorithm trains,
-#               saves and loads on CUDA, on the eager path and on the fast path), then benchmarks/bench_gpu.py's
-#               updates/s of every variant at N = 10, 20, 50, eager against fast;
+#               saves and loads on CUDA, on the eager path and on the fast path; their outcome goes into the
+#               report), then benchmarks/bench_gpu.py's updates/s of every variant at N = 10, 20, 50, eager against
+#               fast;
 #   end_to_end  MT10, then MT50, end to end for MTSAC and MTSACTE, eager against fast, and the hours the paper's
 #               budget takes;
 #   profile     where the fast path's time goes in learn() (benchmarks/profile_gpu.py: each stage of a vector step,
@@ -72,8 +73,9 @@ for part in "${parts[@]}"; do
     if [ "$part" = updates ]; then
         "$python" -m pytest -q -rs -p no:cacheprovider "${tests[@]}" tests/test_update_path.py tests/test_buffers.py \
             tests/test_device.py 2>&1 | tee "$out/tests.log" | tail -6
-        [ "${PIPESTATUS[0]}" = 0 ] || status=1
-        bench --parts updates "${updates[@]}" || exit 1
+        tests_rc="${PIPESTATUS[0]}"
+        [ "$tests_rc" = 0 ] || status=1
+        bench --parts updates "${updates[@]}" --tests-log "$out/tests.log" --tests-rc "$tests_rc" || exit 1
     elif [ "$part" = end_to_end ]; then
         bench --parts end_to_end "${end_to_end[@]}" || exit 1
     else

@@ -15,8 +15,10 @@ import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait befo
 
 import argparse
 import json
+import os
 import time
 from collections import defaultdict
+from contextlib import contextmanager
 
 import numpy as np
 import torch as th
@@ -38,14 +40,17 @@ def synchronize(device: str) -> None:
         th.cuda.synchronize()
 
 
-def time_stages(model, device: str) -> dict[str, float]:
-    """Wrap the stages' methods on this instance so each call adds its synchronised wall time to the returned dict."""
+@contextmanager
+def timed_stages(model, device: str):
+    """Wrap the stages' methods on this instance so each call adds its synchronised wall time to the yielded dict;
+    the wrappers are removed on exit."""
     seconds: dict[str, float] = defaultdict(float)
+    wrapped = [(model, name, stage) for stage, name in STAGES.items()] + [(model.env, "step", "env")]
+    own = [name in vars(owner) for owner, name, _ in wrapped]  # an instance attribute already: put it back on exit
+    originals = [getattr(owner, name) for owner, name, _ in wrapped]
+    for (owner, name, stage), original in zip(wrapped, originals, strict=True):
 
-    def timed(owner, name: str, stage: str) -> None:
-        original = getattr(owner, name)
-
-        def wrapper(*args, **kwargs):
+        def wrapper(*args, original=original, stage=stage, **kwargs):
             synchronize(device)
             start = time.perf_counter()
             result = original(*args, **kwargs)
@@ -54,47 +59,56 @@ def time_stages(model, device: str) -> dict[str, float]:
             return result
 
         setattr(owner, name, wrapper)
+    try:
+        yield seconds
+    finally:
+        for (owner, name, _), original, was_own in zip(wrapped, originals, own, strict=True):
+            if was_own:
+                setattr(owner, name, original)
+            else:
+                delattr(owner, name)
 
-    for stage, name in STAGES.items():
-        timed(model, name, stage)
-    timed(model.env, "step", "env")
-    return seconds
 
-
-def split_vector_step(model, device: str, vector_steps: int) -> dict:
-    """Milliseconds per vector step of each stage and of the rest, over ``vector_steps`` steps of ``learn()``."""
-    seconds = time_stages(model, device)
+def learn_seconds(model, device: str, vector_steps: int) -> float:
     synchronize(device)
     start = time.perf_counter()
     model.learn(vector_steps * model.n_tasks, reset_num_timesteps=False)
     synchronize(device)
-    wall = time.perf_counter() - start
+    return time.perf_counter() - start
+
+
+def split_vector_step(model, device: str, vector_steps: int) -> dict:
+    """Milliseconds per vector step of each stage and of the rest, over ``vector_steps`` steps of ``learn()``, and
+    the env steps/s of the same number of steps untimed before them."""
+    untimed = learn_seconds(model, device, vector_steps)
+    with timed_stages(model, device) as seconds:
+        wall = learn_seconds(model, device, vector_steps)
     per_step = {stage: 1e3 * s / vector_steps for stage, s in seconds.items()}
     per_step["rest"] = 1e3 * wall / vector_steps - sum(per_step.values())
     return {
         "ms_per_vector_step": {k: round(v, 3) for k, v in per_step.items()},
         "env_steps_per_s": round(vector_steps * model.n_tasks / wall, 1),
+        "untimed_env_steps_per_s": round(vector_steps * model.n_tasks / untimed, 1),
     }
 
 
 def profile_learn(model, device: str, vector_steps: int, rows: int) -> dict:
-    """torch.profiler over ``vector_steps`` steps of ``learn()``: the device's busy share and the top ops."""
+    """torch.profiler over ``vector_steps`` steps of ``learn()``: the share of that time the device ran kernels, and
+    the top kernels (device time) and host ops (self time)."""
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if device == "cuda" else [])
-    synchronize(device)
-    start = time.perf_counter()
     with profile(activities=activities) as prof:
-        model.learn(vector_steps * model.n_tasks, reset_num_timesteps=False)
-        synchronize(device)
-    wall_us = 1e6 * (time.perf_counter() - start)
-    averages = prof.key_averages()
-    kernels_us = sum(e.self_device_time_total for e in averages if e.device_type == DeviceType.CUDA)
-    by_device = sorted(averages, key=lambda e: e.self_device_time_total, reverse=True)[:rows]
-    by_host = sorted(averages, key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]
-    device_us = {e.key[:60]: round(e.self_device_time_total / vector_steps, 1) for e in by_device}
+        wall_us = 1e6 * learn_seconds(model, device, vector_steps)
+    kernel_us: dict[str, float] = defaultdict(float)
+    for event in prof.key_averages():
+        if event.device_type == DeviceType.CUDA:
+            kernel_us[event.key[:60]] += event.self_device_time_total
+    host = sorted(prof.key_averages(), key=lambda e: e.self_cpu_time_total, reverse=True)[:rows]
+    kernels = sorted(kernel_us.items(), key=lambda item: item[1], reverse=True)[:rows]
     return {
-        "device_busy_share": round(kernels_us / wall_us, 3),
-        "top_by_device_us_per_vector_step": {key: us for key, us in device_us.items() if us > 0},
-        "top_by_host_us_per_vector_step": {e.key[:60]: round(e.self_cpu_time_total / vector_steps, 1) for e in by_host},
+        "device_busy_share": round(sum(kernel_us.values()) / wall_us, 3),
+        "profiled_env_steps_per_s": round(vector_steps * model.n_tasks / (wall_us / 1e6), 1),
+        "top_by_device_us_per_vector_step": {key: round(us / vector_steps, 1) for key, us in kernels},
+        "top_by_host_us_per_vector_step": {e.key[:60]: round(e.self_cpu_time_total / vector_steps, 1) for e in host},
     }
 
 
@@ -139,8 +153,9 @@ def main(argv: list[str] | None = None) -> dict:
     args = parser.parse_args(argv)
     gpu_defaults.FAST_PATH_BY_DEFAULT = True
     device = ("cuda" if th.cuda.is_available() else "cpu") if args.device == "auto" else args.device
-    report: dict = {"device": device, "device_name": th.cuda.get_device_name(0) if device == "cuda" else "cpu",
-                    "torch": th.__version__, "vector_steps": args.vector_steps}  # fmt: skip
+    name = th.cuda.get_device_name(0) if device == "cuda" else "cpu"
+    report: dict = {"device": device, "device_name": name, "torch": th.__version__, "cpu_count": os.cpu_count(),
+                    "vector_steps": args.vector_steps}  # fmt: skip
     for benchmark in args.benchmarks:
         report[benchmark] = profile_benchmark(benchmark, device, args.vector_steps, args.rows)
         if args.out:

@@ -54,3 +54,13 @@ def test_a_report_of_another_machine_is_replaced(tmp_path, monkeypatch):
     report = bench_gpu.main(["--device", "cpu", "--out", str(out), "--parts", "end_to_end", "--benchmarks", "MT10"])
     assert "updates" not in report and report["device"] == "cpu"
     assert json.loads(out.read_text()) == report
+
+
+def test_the_cuda_tests_outcome_goes_into_the_report_and_stays_for_the_second_part(tmp_path, monkeypatch):
+    stub_measurements(monkeypatch)
+    out, log = str(tmp_path / "gpu_check.json"), tmp_path / "tests.log"
+    log.write_text("......\n\n1 failed, 21 passed, 36 deselected in 22.40s\n")
+    bench_gpu.main(["--device", "cpu", "--out", out, "--parts", "updates", "--n-tasks", "10",
+                    "--tests-log", str(log), "--tests-rc", "1"])  # fmt: skip
+    report = bench_gpu.main(["--device", "cpu", "--out", out, "--parts", "end_to_end", "--benchmarks", "MT10"])
+    assert report["cuda_tests"] == {"summary": "1 failed, 21 passed, 36 deselected in 22.40s", "rc": 1}

@@ -1,5 +1,6 @@
 """``device="auto"`` picks CUDA when present, else the CPU; on a GPU machine every algorithm trains, saves and loads
-there, on the default (eager) path and on the opt-in fast path (these CUDA tests run wherever a GPU is present)."""
+there, on the default path (the fast path wherever the update allows it), on the eager path and on the fast path
+asked for by name (these CUDA tests run wherever a GPU is present)."""
 
 from __future__ import annotations
 
@@ -15,24 +16,28 @@ def test_auto_device_is_cuda_when_present_else_cpu() -> None:
     assert model.device.type == ("cuda" if th.cuda.is_available() else "cpu")
 
 
+EAGER = {"update_path": "eager", "replay_buffer_kwargs": {"storage": "host"}}
+"""The eager path: each update's kernels launched one by one, the replay buffer in host memory."""
 FAST_PATH = {"update_path": "cuda_graph", "replay_buffer_kwargs": {"storage": "device"}}
-"""The opt-in fast path: the update replayed as a CUDA graph, the replay buffer's transitions on the GPU."""
+"""The fast path: the update replayed as a CUDA graph, the replay buffer's transitions on the GPU."""
 
 
 @CUDA
 @pytest.mark.parametrize(
-    "cls, policy, kwargs",
+    "cls, policy, kwargs, update_path, storage",
     [
-        (MTSAC, "MlpPolicy", {}),
-        (MTSAC, "MlpPolicy", {"gradient_surgery": "pcgrad"}),
-        (MTSAC, "MOOREPolicy", {}),
-        (MTSAC, "PaCoPolicy", {}),
-        (MTSACTE, "MlpPolicy", {}),
-        (MTSAC, "MlpPolicy", FAST_PATH),
-        (MTSACTE, "MlpPolicy", FAST_PATH),
+        (MTSAC, "MlpPolicy", {}, "cuda_graph", "device"),
+        (MTSAC, "MlpPolicy", {"gradient_surgery": "pcgrad"}, "eager", "device"),  # surgery reads the GPU on the host
+        (MTSAC, "MOOREPolicy", {}, "cuda_graph", "device"),
+        (MTSAC, "PaCoPolicy", {}, "eager", "device"),  # PaCo's reset reads the GPU on the host
+        (MTSACTE, "MlpPolicy", {}, "cuda_graph", "device"),
+        (MTSAC, "MlpPolicy", EAGER, "eager", "host"),
+        (MTSACTE, "MlpPolicy", EAGER, "eager", "host"),
+        (MTSAC, "MlpPolicy", FAST_PATH, "cuda_graph", "device"),
+        (MTSACTE, "MlpPolicy", FAST_PATH, "cuda_graph", "device"),
     ],
 )
-def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict) -> None:
+def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict, update_path: str, storage: str):
     base = small_model_kwargs(device="cuda")
     if cls is MTSAC:
         base = {key: base[key] for key in ("learning_starts", "batch_size", "buffer_size", "seed", "device")}
@@ -40,9 +45,7 @@ def test_training_save_and_load_on_cuda(tmp_path, cls, policy: str, kwargs: dict
     model = cls(policy, make_mt_env("toy-conflict", seed=0), **base, **kwargs)
     model.learn(80)
     assert all(p.device.type == "cuda" for p in model.policy.parameters())
-    fast = kwargs is FAST_PATH
-    assert model.resolved_update_path() == ("cuda_graph" if fast else "eager")  # "auto" is eager until it has run
-    assert model.replay_buffer._storage() == ("device" if fast else "host")
+    assert model.resolved_update_path() == update_path and model.replay_buffer._storage() == storage
     model.save(tmp_path / "model")
     loaded = cls.load(tmp_path / "model", env=make_mt_env("toy-conflict", seed=0), device="cuda")
     obs = model.get_env().reset()

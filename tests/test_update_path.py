@@ -9,6 +9,7 @@ replay run only in the CUDA tests, which compare the graph with the eager path w
 from __future__ import annotations
 
 import csv
+import json
 from collections import namedtuple
 from pathlib import Path
 
@@ -162,11 +163,13 @@ def test_a_new_batch_size_is_warmed_up_again_before_its_capture():
 
 
 def test_auto_takes_the_fast_path_on_cuda_once_the_device_check_has_run(monkeypatch):
-    """No default that has never run on a GPU: the fast path is the default exactly when the device check's report
-    is committed. Without it, ``"auto"`` is eager and the host's buffer on CUDA too; with it, the graph wherever the
-    update's hooks allow it, and the GPU's buffer where it fits."""
-    report = Path(__file__).resolve().parents[1] / "docs" / "results" / "gpu_check.json"
-    assert gpu_defaults.FAST_PATH_BY_DEFAULT == report.exists()
+    """No default that has never run on a GPU: the fast path is the default exactly when the device check's committed
+    report says its CUDA tests passed. Without it, ``"auto"`` is eager and the host's buffer on CUDA too; with it,
+    the graph wherever the update's hooks allow it, and the GPU's buffer where it fits."""
+    path = Path(__file__).resolve().parents[1] / "docs" / "results" / "gpu_check.json"
+    tests = json.loads(path.read_text()).get("cuda_tests", {}) if path.exists() else {}
+    passed = tests.get("rc") == 0 and " passed" in tests.get("summary", "") and "failed" not in tests["summary"]
+    assert gpu_defaults.FAST_PATH_BY_DEFAULT == passed, tests
     monkeypatch.setattr(gpu_defaults, "FAST_PATH_BY_DEFAULT", False)
     cuda = th.device("cuda")
     for case in CASES:

@@ -352,12 +352,14 @@ def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeyp
     assert calls == [1] and float(trial["value"]) == 0.625
 
 
-def test_meta_world_steps_one_process_per_task_from_four_cores():
+def test_meta_world_steps_one_process_per_task_from_four_cores_up_to_four_tasks_a_core():
     from sb3_mtte.experiments.env_ids import default_vec_env
 
     assert default_vec_env("MT10", cpu_count=4) == default_vec_env("MT10-cpu", cpu_count=11) == "subproc"
-    assert default_vec_env("MT50", cpu_count=16) == "subproc"  # more tasks than cores: still 5.9x on 16
+    assert default_vec_env("MT50", cpu_count=16) == default_vec_env("MT50", cpu_count=13) == "subproc"  # 5.9x on 16
     assert default_vec_env("MT10", cpu_count=3) == default_vec_env("MT50", cpu_count=2) == "dummy"
+    assert default_vec_env("MT50", cpu_count=12) == "dummy"  # more than four tasks a core
+    assert default_vec_env("reach-v3", cpu_count=16) == "dummy"  # one task: nothing to step in parallel
     assert default_vec_env("toy-conflict", cpu_count=64) == "dummy"
 
 

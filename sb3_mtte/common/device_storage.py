@@ -27,9 +27,9 @@ def check_storage(storage: str) -> None:
 
 
 def resolve_storage(storage: str, device: th.device, n_bytes: int) -> str:
-    """``"host"``, ``"pinned"`` or ``"device"`` for a buffer of ``n_bytes`` on ``device``: ``"auto"`` is the host
-    (on CUDA with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`, the GPU where the buffer fits, else
-    pinned).
+    """``"host"``, ``"pinned"`` or ``"device"`` for a buffer of ``n_bytes`` on ``device``: ``"auto"`` is, on CUDA
+    with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT` (the default), the GPU where the buffer fits, else
+    pinned; the host otherwise.
 
     :raises ValueError: for an unknown storage.
     """

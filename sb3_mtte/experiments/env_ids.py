@@ -149,17 +149,23 @@ class _TaskEnvFn:
 
 SUBPROC_MIN_CORES = 4
 """The fewest cores on which Meta-World's tasks stepped in subprocesses beat stepping them one after another (env
-stepping alone, MT10: no faster on 2 cores, 1.57x on 4; MT50 on 16 cores: 5.9x; docs/performance.md)."""
+stepping alone, MT10: no faster on 2 cores, 1.57x on 4; docs/results/gpu_profile.json)."""
+SUBPROC_MAX_TASKS_PER_CORE = 4
+"""The most tasks per core given a process each (measured up to 3.1: MT50 on 16 cores, 5.9x; every process holds
+its own Python, torch and MuJoCo, about a quarter of a GB, and rl-zoo's eval env doubles them)."""
 
 
 def default_vec_env(env_id: str, cpu_count: int | None = None) -> str:
     """rl-zoo's ``--vec-env`` when none is given: ``"subproc"`` (one process per task, stepped in parallel) for a
-    Meta-World benchmark of several tasks on a machine with at least :data:`SUBPROC_MIN_CORES` cores, else
-    ``"dummy"`` (a toy's steps cost less than a message to a process)."""
+    Meta-World benchmark of several tasks on a machine with at least :data:`SUBPROC_MIN_CORES` cores and at most
+    :data:`SUBPROC_MAX_TASKS_PER_CORE` tasks per core, else ``"dummy"`` (a toy's steps cost less than a message to a
+    process)."""
     cores = os.cpu_count() if cpu_count is None else cpu_count
     if parse_toy_name(split_env_id(env_id)[0]) is not None:
         return "dummy"
-    return "subproc" if env_id_n_tasks(env_id) > 1 and (cores or 1) >= SUBPROC_MIN_CORES else "dummy"
+    cores, n_tasks = cores or 1, env_id_n_tasks(env_id)
+    parallel = n_tasks > 1 and cores >= SUBPROC_MIN_CORES and n_tasks <= SUBPROC_MAX_TASKS_PER_CORE * cores
+    return "subproc" if parallel else "dummy"
 
 
 class MultiTaskVecEnvFactory:

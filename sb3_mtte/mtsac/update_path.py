@@ -1,4 +1,4 @@
-"""How MTSAC runs its updates: eagerly, or replayed as a CUDA graph (opt-in on CUDA until it has run on a GPU:
+"""How MTSAC runs its updates: eagerly, or replayed as a CUDA graph (the default on CUDA where the update allows it:
 :mod:`~sb3_mtte.common.gpu_defaults`), and what the host reads.
 
 Both paths run one function, :meth:`UpdatePathMixin._update` (the SAC update of Eq. 9 and 15-16, then Polyak); the
@@ -44,8 +44,8 @@ class UpdatePathMixin:
     target_update_interval: int
 
     def resolved_update_path(self) -> str:
-        """``"eager"`` or ``"cuda_graph"``: ``"auto"`` is eager (it takes the graph on CUDA, when the update's hooks
-        allow it, only with :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT`).
+        """``"eager"`` or ``"cuda_graph"``: ``"auto"`` takes the graph on CUDA when the update's hooks allow it and
+        :data:`~sb3_mtte.common.gpu_defaults.FAST_PATH_BY_DEFAULT` is set (the default), else eager.
 
         :raises ValueError: for ``"cuda_graph"`` off CUDA or with hooks that read the GPU on the host.
         """
