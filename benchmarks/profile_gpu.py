@@ -22,7 +22,7 @@ from contextlib import contextmanager
 
 import numpy as np
 import torch as th
-from bench_updates import quiet
+from bench_updates import quiet, time_once
 from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv
 from torch.autograd import DeviceType
 from torch.profiler import ProfilerActivity, profile
@@ -71,10 +71,7 @@ def timed_stages(model, device: str):
 
 def learn_seconds(model, device: str, vector_steps: int) -> float:
     synchronize(device)
-    start = time.perf_counter()
-    model.learn(vector_steps * model.n_tasks, reset_num_timesteps=False)
-    synchronize(device)
-    return time.perf_counter() - start
+    return time_once(lambda: model.learn(vector_steps * model.n_tasks, reset_num_timesteps=False))
 
 
 def split_vector_step(model, device: str, vector_steps: int) -> dict:
