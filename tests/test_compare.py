@@ -9,7 +9,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_mtte.experiments.compare import Comparison, comparison_report, main, mean_difference, runaway
+from sb3_mtte.experiments.compare import (
+    PREREGISTERED,
+    Comparison,
+    comparison_report,
+    comparison_summary,
+    main,
+    mean_difference,
+    runaway,
+)
+from sb3_mtte.experiments.figures import PlotOptions
+from sb3_mtte.experiments.plot import _write_table1
+from sb3_mtte.experiments.results import benchmark_statistics
 from sb3_mtte.experiments.runs import Run
 
 TASKS = ["reach-v3", "push-v3"]
@@ -88,19 +99,25 @@ def test_a_run_below_the_criterion_did_not_run_away():
     assert not found.fell(0.0)
 
 
+def four_runs() -> list[Run]:
+    """Seeds 0 and 3 of each; final means Ours 0.5 and 0.6, SAC-MT 0.2 and 0.4; SAC-MT's reach ran away in window 2
+    in both, from a best of 0.9 before it to 0.4 and 0.8."""
+    away = [[5, 1], [5, 1], [200, 1], [200, 1], [5, 1], [5, 1]]
+    return [
+        hand_run("Ours", 0, CALM, [[0.5, 0.5]] * 3, [0.5, 0.5]),
+        hand_run("Ours", 3, CALM, [[0.5, 0.5]] * 3, [0.6, 0.6]),
+        hand_run("SAC-MT", 0, away, [[0.9, 0.0]] * 3, [0.4, 0.0]),
+        hand_run("SAC-MT", 3, away, [[0.9, 0.0]] * 3, [0.8, 0.0]),
+    ]
+
+
 def test_the_report_gives_the_difference_the_aggregates_and_fishers_test(tmp_path):
     """Seeds 0 and 3 of each, the replication seed 3 alone (n = 1: no test). Final means: Ours 0.5 and 0.6, SAC-MT
     0.2 and 0.4: difference 0.55 - 0.3 = 0.25; with two runs each, a resample's mean difference is 0.1 to 0.4, the
     extremes with chance 1/16 each, so the 95% interval is [0.1, 0.4]. SAC-MT's reach ran away in window 2 in both
     runs, from a best of 0.9 before it to 0.4 (fell) and 0.8 (did not). Fisher's p for [[0, 2], [2, 0]] is
     1/6 + 1/6 = 0.333. P(Ours > SAC-MT) is 0.75."""
-    away = [[5, 1], [5, 1], [200, 1], [200, 1], [5, 1], [5, 1]]
-    runs = [
-        hand_run("Ours", 0, CALM, [[0.5, 0.5]] * 3, [0.5, 0.5]),
-        hand_run("Ours", 3, CALM, [[0.5, 0.5]] * 3, [0.6, 0.6]),
-        hand_run("SAC-MT", 0, away, [[0.9, 0.0]] * 3, [0.4, 0.0]),
-        hand_run("SAC-MT", 3, away, [[0.9, 0.0]] * 3, [0.8, 0.0]),
-    ]
+    runs = four_runs()
     report = comparison_report("MT2", runs, Comparison(replication_seeds=(3,)), reps=50)
     assert "| seeds 3 | 1 | 1 | - | - | - | - |" in report
     row = next(line for line in report.splitlines() if line.startswith("| all seeds | 2 | 2 |"))
@@ -111,6 +128,31 @@ def test_the_report_gives_the_difference_the_aggregates_and_fishers_test(tmp_pat
     # P(Ours > SAC-MT): reach 2 of 4 pairs (0.5, 0.6 against 0.4, 0.8), push 4 of 4: (0.5 + 1) / 2
     rliable_row = next(line for line in report.splitlines() if line.startswith("| all seeds | SAC-MT | 2 |"))
     assert rliable_row.split(" | ")[3].startswith("30.0 [") and rliable_row.split(" | ")[5].startswith("0.75 [")
+
+
+def test_the_summary_under_table_1_gives_each_subsets_difference_and_runaway_count():
+    """The runs of the report above. All seeds: difference 0.25 [0.1, 0.4]; Welch: variances 0.005 and 0.02, so
+    se^2 = 0.0025 + 0.01 and t = 0.25 / sqrt(0.0125) = 2.236. Seed 3 alone: one run each, no difference."""
+    summary = comparison_summary("MT2", four_runs(), Comparison(replication_seeds=(3,)))
+    assert "Seeds 3 (n = 1 and 1): too few runs for the difference; ran away: 0 of 1 and 1 of 1." in summary
+    assert "All seeds (n = 2 and 2): +25.0 points [10.0, 40.0], Welch t 2.24, p " in summary
+    assert summary.endswith("; ran away: 0 of 2 and 2 of 2. In full: compare_MT2.md (`sb3-mtte compare`).")
+
+
+def test_plot_puts_the_summary_under_table_1_and_writes_the_comparison(tmp_path, monkeypatch):
+    """A benchmark with a comparison fixed before its runs gets both; one without, Table 1 alone."""
+    runs = four_runs()
+    by_label = {"Ours": runs[:2], "SAC-MT": runs[2:]}
+    stats = benchmark_statistics(by_label, reps=50)
+    opts = PlotOptions(out=tmp_path, reps=50)
+    _write_table1("MT2", stats, runs, opts, [])
+    assert not (tmp_path / "compare_MT2.md").exists()
+    plain = (tmp_path / "table1_MT2.md").read_text()
+    cmp = Comparison(replication_seeds=(3,))
+    monkeypatch.setitem(PREREGISTERED, "MT2", cmp)
+    _write_table1("MT2", stats, runs, opts, [])
+    assert (tmp_path / "table1_MT2.md").read_text() == plain + "\n" + comparison_summary("MT2", runs, cmp) + "\n"
+    assert (tmp_path / "compare_MT2.md").read_text() == comparison_report("MT2", runs, cmp, reps=50)
 
 
 @pytest.mark.parametrize(

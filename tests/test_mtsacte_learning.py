@@ -229,6 +229,7 @@ def _toy_probes(total_timesteps: int, **overrides) -> list[tuple[int, float, flo
     return probes
 
 
+@pytest.mark.slow  # long: .ci/run runs it after the default suite
 def test_default_schedule_gives_z_the_task_from_the_start_and_keeps_it():
     """With the defaults (E_phi at std 0.01, its mean head x 50, c_vae 1e-4), the probe of sampled z (chance 0.25)
     is >= 0.5 at every one of the 26 recomputations of the first 6,000 env steps (1,500 per task) and 0.8 on average

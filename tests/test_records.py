@@ -161,16 +161,19 @@ def test_success_figure_draws_the_ablations_in_a_panel_of_their_own(tmp_path, mo
 
 @pytest.mark.slow  # long: .ci/run runs it after the default suite
 def test_committed_tables_are_what_the_readme_command_draws_from_the_committed_records(tmp_path):
-    """docs/figures holds, for every benchmark with records in docs/records, the Table 1, the runs table and the
-    aggregate numbers that the README's command draws from them now, and the README shows each of those tables."""
+    """docs/figures holds, for every benchmark with records in docs/records, the Table 1, the runs table, the
+    aggregate numbers and (where there is one) the comparison fixed before the runs that the README's command draws
+    from them now, and the README shows each Table 1."""
     args = readme_plot_command()
     plot.main([str(ROOT / args[0]), "--out", str(tmp_path), *args[3:]])
     readme = (ROOT / "README.md").read_text()
     benchmarks = sorted(path.name for path in (ROOT / "docs" / "records").iterdir() if path.is_dir())
     assert benchmarks
     for env_id in benchmarks:
-        drawn = [f"table1_{env_id}.md", f"runs_{env_id}.md", f"results_{env_id}.json", f"bellman_{env_id}.md"]
-        assert (ROOT / args[2] / drawn[-1]).exists() == (tmp_path / drawn[-1]).exists(), drawn[-1]
+        drawn = [f"table1_{env_id}.md", f"runs_{env_id}.md", f"results_{env_id}.json"]
+        drawn += [f"bellman_{env_id}.md", f"compare_{env_id}.md"]
+        for name in drawn[-2:]:
+            assert (ROOT / args[2] / name).exists() == (tmp_path / name).exists(), name
         for name in filter(lambda name: (tmp_path / name).exists(), drawn):
             committed = (ROOT / args[2] / name).read_text()
             assert committed == (tmp_path / name).read_text(), f"{name}: redraw with the README's command"

@@ -24,6 +24,7 @@ from scipy import stats
 
 from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments import command_prog, output_file_error
+from sb3_mtte.experiments.figures import safe_name
 from sb3_mtte.experiments.bellman_table import critic_losses, evaluation_steps, window_names, window_peaks
 from sb3_mtte.experiments.records import load_runs
 from sb3_mtte.experiments.runs import Run, group_runs, success_curve
@@ -174,10 +175,18 @@ def _window_edges(runs: Sequence[Run]) -> list[float] | None:
     return list(max(grids, key=lambda grid: (grid[-1], len(grid)))) if grids else None
 
 
-def _runaway_rows(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> list[str]:
+def _runaways(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> dict[int, Runaway | None]:
+    return {id(run): runaway(run, edges, cmp.runaway_loss) for run in runs}
+
+
+def _ran_away(found: Runaway | None) -> bool:
+    return found is not None and found.window is not None
+
+
+def _runaway_rows(runs: Sequence[Run], found_by_run: dict[int, Runaway | None], cmp: Comparison) -> list[str]:
     rows = []
     for run in runs:
-        found = runaway(run, edges, cmp.runaway_loss)
+        found = found_by_run[id(run)]
         if found is None:
             rows.append(f"| {run.label} | {run.seed} | - | - | - | {_pct(_means([run])[0])} |")
             continue
@@ -192,12 +201,10 @@ def _runaway_rows(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) 
     return rows
 
 
-def _runaway_count(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> int:
-    return sum(1 for run in runs if (found := runaway(run, edges, cmp.runaway_loss)) and found.window is not None)
-
-
-def _fisher_line(name: str, a: list[Run], b: list[Run], edges: Sequence[float], cmp: Comparison) -> str:
-    count_a, count_b = _runaway_count(a, edges, cmp), _runaway_count(b, edges, cmp)
+def _fisher_line(
+    name: str, a: list[Run], b: list[Run], found_by_run: dict[int, Runaway | None], cmp: Comparison
+) -> str:
+    count_a, count_b = (sum(_ran_away(found_by_run[id(run)]) for run in runs) for runs in (a, b))
     line = f"- {name}: {cmp.a} {count_a} of {len(a)}, {cmp.b} {count_b} of {len(b)} runs ran away"
     if a and b:
         _, p = stats.fisher_exact([[count_a, len(a) - count_a], [count_b, len(b) - count_b]])
@@ -205,15 +212,49 @@ def _fisher_line(name: str, a: list[Run], b: list[Run], edges: Sequence[float], 
     return line + "."
 
 
+def _subsets(bench: str, runs: Sequence[Run], cmp: Comparison) -> dict[str, list[list[Run]]]:
+    """Subset name (the replication's seeds, then "all seeds") -> [a's finished runs, b's], sorted by seed."""
+    groups = group_runs(runs).get(bench, {})
+    everything = [_finished(groups.get(label, []), None) for label in (cmp.a, cmp.b)]
+    subsets = {}
+    if cmp.replication_seeds:
+        name = "seeds " + " ".join(map(str, cmp.replication_seeds))
+        subsets[name] = [[run for run in pair if run.seed in cmp.replication_seeds] for pair in everything]
+    subsets["all seeds"] = everything
+    return subsets
+
+
+def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
+    """One paragraph for under Table 1: on each subset of :func:`comparison_report`, the difference of the means
+    with its interval and Welch's t, and how many runs of each algorithm ran away."""
+    subsets = _subsets(bench, runs, cmp)
+    edges = _window_edges(subsets["all seeds"][0] + subsets["all seeds"][1])
+    sentences = []
+    for name, (a, b) in subsets.items():
+        found = f"{name.capitalize()} (n = {len(a)} and {len(b)}): "
+        if len(a) < 2 or len(b) < 2:
+            found += "too few runs for the difference"
+        else:
+            diff = mean_difference(_means(a), _means(b))
+            found += f"{100 * diff.value:+.1f} points [{_pct(diff.low)}, {_pct(diff.high)}]"
+            found += f", Welch t {diff.t:.2f}, p {diff.p:.3f}"
+        if edges is not None:
+            by_run = _runaways(a + b, edges, cmp)
+            counts = [sum(_ran_away(by_run[id(run)]) for run in runs) for runs in (a, b)]
+            found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
+        sentences.append(found + ".")
+    return (
+        f"{cmp.a} minus {cmp.b} as fixed before the runs (docs/results.md): the difference of the mean final success "
+        f"over runs with its 95% bootstrap interval ({DIFFERENCE_REPS:,} resamples) and Welch's t; the runs whose "
+        f"soft Bellman error ran away (a task's window-mean critic loss above {cmp.runaway_loss:g}), {cmp.a} then "
+        f"{cmp.b}. " + " ".join(sentences) + f" In full: compare_{safe_name(bench)}.md (`sb3-mtte compare`)."
+    )
+
+
 def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: int = DEFAULT_REPS) -> str:
     """The markdown report of ``cmp`` on the runs of benchmark ``bench`` that have a final evaluation (rliable's
     intervals from ``reps`` resamples)."""
-    groups = group_runs(runs).get(bench, {})
-    everything = {label: _finished(groups.get(label, []), None) for label in (cmp.a, cmp.b)}
-    subsets = [("all seeds", None)]
-    if cmp.replication_seeds:
-        subsets.insert(0, ("seeds " + " ".join(map(str, cmp.replication_seeds)), cmp.replication_seeds))
-    chosen = {name: [_finished(everything[label], seeds) for label in (cmp.a, cmp.b)] for name, seeds in subsets}
+    chosen = _subsets(bench, runs, cmp)
     lines = [
         f"{bench}: {cmp.a} against {cmp.b}, the final success (mean over tasks of each run's final evaluation). "
         f"Difference: the mean over runs of {cmp.a} minus that of {cmp.b}, 95% percentile bootstrap over runs "
@@ -232,8 +273,10 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
         "|:--|:--|--:|--:|--:|--:|",
         *(row for name, pair in chosen.items() for row in _rliable_rows(name, *pair, cmp, reps)),
     ]
-    edges = _window_edges([run for pair in everything.values() for run in pair])
+    everything = chosen["all seeds"][0] + chosen["all seeds"][1]
+    edges = _window_edges(everything)
     if edges is not None:
+        found_by_run = _runaways(everything, edges, cmp)
         windows = ", ".join(window_names(edges))
         lines += [
             "",
@@ -244,9 +287,9 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
             "",
             "| Algorithm | Seed | Largest window mean | Ran away | Fell with it | Final (%) |",
             "|:--|--:|--:|:--|:--|--:|",
-            *_runaway_rows([*everything[cmp.a], *everything[cmp.b]], edges, cmp),
+            *_runaway_rows(everything, found_by_run, cmp),
             "",
-            *(_fisher_line(name, *pair, edges, cmp) for name, pair in chosen.items()),
+            *(_fisher_line(name, *pair, found_by_run, cmp) for name, pair in chosen.items()),
         ]
     return "\n".join(lines) + "\n"
 

@@ -22,6 +22,8 @@ Written to ``--out``, per benchmark ``<b>``:
   (``success.json``) when present, else its last evaluation; a run without a final evaluation that stopped before its
   budget (crashed, killed, still training) is left out of every figure and table, and named in one line on stderr
   (``--include-unfinished`` draws it and counts its last evaluation);
+- ``compare_<b>.md``, for a benchmark with a comparison fixed before its runs (MT10-100k: Ours against SAC-MT,
+  :mod:`sb3_mtte.experiments.compare`): the comparison in full; its summary goes under Table 1;
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
   its package commit;
 - ``bellman_<b>.md``, for runs that log the per-task critic loss: every run, seed by seed: between consecutive
@@ -49,9 +51,10 @@ from pathlib import Path
 from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments import command_prog, output_folder_error
 from sb3_mtte.experiments.bellman_table import bellman_table
+from sb3_mtte.experiments.compare import PREREGISTERED, comparison_report, comparison_summary
 from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.records import load_runs
-from sb3_mtte.experiments.results import benchmark_statistics, results_records, runs_table, table1
+from sb3_mtte.experiments.results import BenchmarkStatistics, benchmark_statistics, results_records, runs_table, table1
 from sb3_mtte.experiments.runs import Run, group_runs
 from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED, run_budget, unfinished
 from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
@@ -104,10 +107,25 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             stats = benchmark_statistics(by_label, opts.reps, opts.seed)
             if stats.scores:
                 plot_profile(bench, stats.scores, opts, written)
-                _write_table(f"table1_{safe_name(bench)}.md", table1(bench, stats, opts.reps, opts.seed), opts, written)
+                _write_table1(bench, stats, [run for by_seed in by_label.values() for run in by_seed], opts, written)
                 _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
             _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
     return written
+
+
+def _write_table1(
+    bench: str, stats: BenchmarkStatistics, runs: list[Run], opts: PlotOptions, written: list[Path]
+) -> None:
+    """Table 1, and for a benchmark with a comparison fixed before its runs, its summary under the table and the
+    comparison in full (``compare_<b>.md``)."""
+    table = table1(bench, stats, opts.reps, opts.seed)
+    cmp = PREREGISTERED.get(bench)
+    if cmp is not None and {cmp.a, cmp.b} <= set(stats.scores):
+        _write_table(
+            f"compare_{safe_name(bench)}.md", comparison_report(bench, runs, cmp, opts.reps), opts, written, False
+        )
+        table += "\n" + comparison_summary(bench, runs, cmp) + "\n"
+    _write_table(f"table1_{safe_name(bench)}.md", table, opts, written)
 
 
 def _left_out_runs(runs: Sequence[Run], opts: PlotOptions) -> list[Run]:
