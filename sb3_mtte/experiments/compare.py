@@ -228,7 +228,9 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
     """One paragraph for under Table 1: on each subset of :func:`comparison_report`, the difference of the means
     with its interval and Welch's t, and how many runs of each algorithm ran away."""
     subsets = _subsets(bench, runs, cmp)
-    edges = _window_edges(subsets["all seeds"][0] + subsets["all seeds"][1])
+    everything = subsets["all seeds"][0] + subsets["all seeds"][1]
+    edges = _window_edges(everything)
+    by_run = None if edges is None else _runaways(everything, edges, cmp)
     sentences = []
     for name, (a, b) in subsets.items():
         found = f"{name.capitalize()} (n = {len(a)} and {len(b)}): "
@@ -238,9 +240,8 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
             diff = mean_difference(_means(a), _means(b))
             found += f"{100 * diff.value:+.1f} points [{_pct(diff.low)}, {_pct(diff.high)}]"
             found += f", Welch t {diff.t:.2f}, p {diff.p:.3f}"
-        if edges is not None:
-            by_run = _runaways(a + b, edges, cmp)
-            counts = [sum(_ran_away(by_run[id(run)]) for run in runs) for runs in (a, b)]
+        if by_run is not None:
+            counts = [sum(_ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
             found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
         sentences.append(found + ".")
     return (

@@ -105,11 +105,12 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
                 _write_table(f"bellman_{safe_name(bench)}.md", bellman, opts, written, echo=False)
             plot_negative_transfer(bench, by_label, opts, written)
             stats = benchmark_statistics(by_label, opts.reps, opts.seed)
+            bench_runs = [run for by_seed in by_label.values() for run in by_seed]
             if stats.scores:
                 plot_profile(bench, stats.scores, opts, written)
-                _write_table1(bench, stats, [run for by_seed in by_label.values() for run in by_seed], opts, written)
+                _write_table1(bench, stats, bench_runs, opts, written)
                 _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
-            _write_results(bench, [run for by_seed in by_label.values() for run in by_seed], opts, written)
+            _write_results(bench, bench_runs, opts, written)
     return written
 
 
