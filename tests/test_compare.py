@@ -136,7 +136,10 @@ def test_the_summary_under_table_1_gives_each_subsets_difference_and_runaway_cou
     summary = comparison_summary("MT2", four_runs(), Comparison(replication_seeds=(3,)))
     assert "Seeds 3 (n = 1 and 1): too few runs for the difference; ran away: 0 of 1 and 1 of 1." in summary
     assert "All seeds (n = 2 and 2): +25.0 points [10.0, 40.0], Welch t 2.24, p " in summary
-    assert summary.endswith("; ran away: 0 of 2 and 2 of 2. In full: compare_MT2.md (`sb3-mtte compare`).")
+    assert summary.endswith(
+        "; ran away: 0 of 2 and 2 of 2. In full: compare_MT2.md, written beside table1_MT2.md (`sb3-mtte plot`, or "
+        "`sb3-mtte compare` alone)."
+    )
 
 
 def test_plot_puts_the_summary_under_table_1_and_writes_the_comparison(tmp_path, monkeypatch):

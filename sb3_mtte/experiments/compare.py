@@ -248,7 +248,8 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
         f"{cmp.a} minus {cmp.b} as fixed before the runs (docs/results.md): the difference of the mean final success "
         f"over runs with its 95% bootstrap interval ({DIFFERENCE_REPS:,} resamples) and Welch's t; the runs whose "
         f"soft Bellman error ran away (a task's window-mean critic loss above {cmp.runaway_loss:g}), {cmp.a} then "
-        f"{cmp.b}. " + " ".join(sentences) + f" In full: compare_{safe_name(bench)}.md (`sb3-mtte compare`)."
+        f"{cmp.b}. " + " ".join(sentences) + f" In full: compare_{safe_name(bench)}.md, written beside "
+        f"table1_{safe_name(bench)}.md (`sb3-mtte plot`, or `sb3-mtte compare` alone)."
     )
 
 
