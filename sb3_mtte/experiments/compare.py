@@ -244,12 +244,13 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
             counts = [sum(_ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
             found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
         sentences.append(found + ".")
+    stem = safe_name(bench)
     return (
         f"{cmp.a} minus {cmp.b} as fixed before the runs (docs/results.md): the difference of the mean final success "
         f"over runs with its 95% bootstrap interval ({DIFFERENCE_REPS:,} resamples) and Welch's t; the runs whose "
         f"soft Bellman error ran away (a task's window-mean critic loss above {cmp.runaway_loss:g}), {cmp.a} then "
-        f"{cmp.b}. " + " ".join(sentences) + f" In full: compare_{safe_name(bench)}.md, written beside "
-        f"table1_{safe_name(bench)}.md (`sb3-mtte plot`, or `sb3-mtte compare` alone)."
+        f"{cmp.b}. " + " ".join(sentences) + f" In full: compare_{stem}.md, written beside "
+        f"table1_{stem}.md (`sb3-mtte plot`, or `sb3-mtte compare` alone)."
     )
 
 
