@@ -132,9 +132,13 @@ def test_the_report_gives_the_difference_the_aggregates_and_fishers_test(tmp_pat
 
 def test_the_summary_under_table_1_gives_each_subsets_difference_and_runaway_count():
     """The runs of the report above. All seeds: difference 0.25 [0.1, 0.4]; Welch: variances 0.005 and 0.02, so
-    se^2 = 0.0025 + 0.01 and t = 0.25 / sqrt(0.0125) = 2.236. Seed 3 alone: one run each, no difference."""
+    se^2 = 0.0025 + 0.01 and t = 0.25 / sqrt(0.0125) = 2.236. Seed 3 alone: one run each, no difference and no
+    reading."""
     summary = comparison_summary("MT2", four_runs(), Comparison(replication_seeds=(3,)))
-    assert "Seeds 3 (n = 1 and 1): too few runs for the difference; ran away: 0 of 1 and 1 of 1." in summary
+    assert (
+        "Seeds 3 (n = 1 and 1): too few runs for the difference; ran away: 0 of 1 and 1 of 1. Reading fixed before the "
+        "runs, on seeds 3: too few runs yet. All seeds" in summary
+    )
     assert "All seeds (n = 2 and 2): +25.0 points [10.0, 40.0], Welch t 2.24, p " in summary
     assert summary.endswith(
         "; ran away: 0 of 2 and 2 of 2. In full: compare_MT2.md, written beside table1_MT2.md (`sb3-mtte plot`, or "
@@ -156,6 +160,52 @@ def test_plot_puts_the_summary_under_table_1_and_writes_the_comparison(tmp_path,
     _write_table1("MT2", stats, runs, opts, [])
     assert (tmp_path / "table1_MT2.md").read_text() == plain + "\n" + comparison_summary("MT2", runs, cmp) + "\n"
     assert (tmp_path / "compare_MT2.md").read_text() == comparison_report("MT2", runs, cmp, reps=50)
+
+
+@pytest.mark.parametrize(
+    ("cmp", "reading"),
+    [
+        (Comparison(replication_seeds=(0, 3)), "on seeds 0 3: Ours is ahead."),
+        (Comparison(a="SAC-MT", b="Ours", replication_seeds=(0, 3)), "on seeds 0 3: Ours is ahead."),
+        (
+            Comparison(replication_seeds=(0, 3, 5)),
+            "on seeds 0 3 5: Ours is ahead; 2 and 2 of the 3 runs of each have finished, so this is not the answer "
+            "yet.",
+        ),
+        (Comparison(replication_seeds=(3,)), "on seeds 3: too few runs yet."),
+    ],
+)
+def test_the_fixed_reading_follows_the_replications_interval(cmp, reading):
+    """Seeds 0 and 3 of each: Ours minus SAC-MT is 0.25 [0.1, 0.4] (the report above), an interval above 0, so Ours
+    is ahead; with the labels swapped the interval is [-0.4, -0.1], below 0, and the second algorithm (Ours) is
+    ahead. A replication with a seed not run yet is provisional; one run of each is too few."""
+    sentence = f"Reading fixed before the runs, {reading}"
+    assert sentence in comparison_summary("MT2", four_runs(), cmp)
+    assert sentence in comparison_report("MT2", four_runs(), cmp, reps=20)
+
+
+@pytest.mark.parametrize(("a", "b", "counts"), [("Ours", "SAC-MT", "3 and 2"), ("SAC-MT", "Ours", "2 and 3")])
+def test_the_reading_is_provisional_while_either_algorithm_lacks_a_replication_seed(a, b, counts):
+    """Ours has seeds 0, 3 and 5 (finals 0.5, 0.6, 0.55), SAC-MT seeds 0 and 3 (0.2, 0.4): every resampled difference
+    is at least 0.5 - 0.4 = 0.1, so Ours is ahead (in either order), but SAC-MT's seed 5 has not finished."""
+    runs = [*four_runs(), hand_run("Ours", 5, CALM, [[0.5, 0.5]] * 3, [0.55, 0.55])]
+    summary = comparison_summary("MT2", runs, Comparison(a=a, b=b, replication_seeds=(0, 3, 5)))
+    assert (
+        f"Reading fixed before the runs, on seeds 0 3 5: Ours is ahead; {counts} of the 3 runs of each have finished, "
+        "so this is not the answer yet." in summary
+    )
+
+
+@pytest.mark.parametrize(("a", "b"), [("Ours", "SAC-MT"), ("SAC-MT", "Ours")])
+def test_an_interval_that_holds_0_shows_nothing(a, b):
+    """Seeds 0 and 3 of each with SAC-MT's finals at 0.4 and 0.6: the difference is +0.05, but a resample's is below
+    0 with chance 3/16 (Ours 0.5 or 0.55 against SAC-MT 0.6: 1/4 * 1/4 + 1/2 * 1/4), so the interval holds 0, and
+    so it does for SAC-MT minus Ours (-0.05)."""
+    runs = four_runs()
+    runs[2] = hand_run("SAC-MT", 0, CALM, [[0.5, 0.5]] * 3, [0.4, 0.4])
+    runs[3] = hand_run("SAC-MT", 3, CALM, [[0.5, 0.5]] * 3, [0.6, 0.6])
+    summary = comparison_summary("MT2", runs, Comparison(a=a, b=b, replication_seeds=(0, 3)))
+    assert "Reading fixed before the runs, on seeds 0 3: not shown (the interval holds 0)." in summary
 
 
 @pytest.mark.parametrize(

@@ -85,6 +85,28 @@ def mean_difference(a: np.ndarray, b: np.ndarray, reps: int = DIFFERENCE_REPS, s
     return MeanDifference(float(a.mean() - b.mean()), float(low), float(high), float(t), float(df), float(p))
 
 
+def fixed_reading(diff: MeanDifference, cmp: Comparison) -> str:
+    """The answer under the reading fixed before the runs (docs/results.md): ``a`` is ahead when the interval for
+    the difference lies above 0, ``b`` when it lies below 0, and not shown when it holds 0."""
+    if diff.low > 0:
+        return f"{cmp.a} is ahead"
+    if diff.high < 0:
+        return f"{cmp.b} is ahead"
+    return "not shown (the interval holds 0)"
+
+
+def _reading_sentence(a: list[Run], b: list[Run], cmp: Comparison) -> str:
+    """The replication's answer under the fixed reading, said to be provisional until every seed has finished."""
+    seeds = " ".join(map(str, cmp.replication_seeds))
+    if len(a) < 2 or len(b) < 2:
+        return f"Reading fixed before the runs, on seeds {seeds}: too few runs yet."
+    found = fixed_reading(mean_difference(_means(a), _means(b)), cmp)
+    expected = len(cmp.replication_seeds)
+    if len(a) < expected or len(b) < expected:
+        found += f"; {len(a)} and {len(b)} of the {expected} runs of each have finished, so this is not the answer yet"
+    return f"Reading fixed before the runs, on seeds {seeds}: {found}."
+
+
 @dataclass(frozen=True)
 class Runaway:
     """A run's largest window-mean critic loss (and its task), its first window above the criterion (None when it
@@ -244,6 +266,8 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
             counts = [sum(_ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
             found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
         sentences.append(found + ".")
+    if cmp.replication_seeds:
+        sentences.insert(1, _reading_sentence(*subsets[next(iter(subsets))], cmp))
     stem = safe_name(bench)
     return (
         f"{cmp.a} minus {cmp.b} as fixed before the runs (docs/results.md): the difference of the mean final success "
@@ -267,6 +291,7 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
         f"| Seeds | n {cmp.a} | n {cmp.b} | Means (%) | Difference (points) | Welch t (df) | p |",
         "|:--|--:|--:|--:|--:|--:|--:|",
         *(_difference_row(name, *pair) for name, pair in chosen.items()),
+        *(["", _reading_sentence(*chosen[next(iter(chosen))], cmp)] if cmp.replication_seeds else []),
         "",
         f"rliable over runs x tasks (95% stratified bootstrap, {reps} resamples, seed {DEFAULT_SEED}); "
         f"P({cmp.a} > {cmp.b}) averages over tasks the chance that a run of {cmp.a} beats one of {cmp.b}, ties "
