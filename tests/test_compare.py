@@ -12,8 +12,10 @@ import pytest
 from sb3_mtte.experiments.compare import (
     PREREGISTERED,
     Comparison,
+    MeanDifference,
     comparison_report,
     comparison_summary,
+    fixed_reading,
     main,
     mean_difference,
     runaway,
@@ -137,7 +139,7 @@ def test_the_summary_under_table_1_gives_each_subsets_difference_and_runaway_cou
     summary = comparison_summary("MT2", four_runs(), Comparison(replication_seeds=(3,)))
     assert (
         "Seeds 3 (n = 1 and 1): too few runs for the difference; ran away: 0 of 1 and 1 of 1. Reading fixed before the "
-        "runs, on seeds 3: too few runs yet. All seeds" in summary
+        "runs, on seeds 3: too few runs for an interval. All seeds" in summary
     )
     assert "All seeds (n = 2 and 2): +25.0 points [10.0, 40.0], Welch t 2.24, p " in summary
     assert summary.endswith(
@@ -165,14 +167,14 @@ def test_plot_puts_the_summary_under_table_1_and_writes_the_comparison(tmp_path,
 @pytest.mark.parametrize(
     ("cmp", "reading"),
     [
-        (Comparison(replication_seeds=(0, 3)), "on seeds 0 3: Ours is ahead."),
+        (Comparison(replication_seeds=(0, 3)), "on seeds 0 3: yes, Ours is ahead."),
         (Comparison(a="SAC-MT", b="Ours", replication_seeds=(0, 3)), "on seeds 0 3: Ours is ahead."),
         (
             Comparison(replication_seeds=(0, 3, 5)),
-            "on seeds 0 3 5: Ours is ahead; 2 and 2 of the 3 runs of each have finished, so this is not the answer "
-            "yet.",
+            "on seeds 0 3 5: yes, Ours is ahead; Ours has finished 2 of its 3 runs and SAC-MT 2, so this is not the "
+            "answer yet.",
         ),
-        (Comparison(replication_seeds=(3,)), "on seeds 3: too few runs yet."),
+        (Comparison(replication_seeds=(3,)), "on seeds 3: too few runs for an interval."),
     ],
 )
 def test_the_fixed_reading_follows_the_replications_interval(cmp, reading):
@@ -184,16 +186,44 @@ def test_the_fixed_reading_follows_the_replications_interval(cmp, reading):
     assert sentence in comparison_report("MT2", four_runs(), cmp, reps=20)
 
 
-@pytest.mark.parametrize(("a", "b", "counts"), [("Ours", "SAC-MT", "3 and 2"), ("SAC-MT", "Ours", "2 and 3")])
-def test_the_reading_is_provisional_while_either_algorithm_lacks_a_replication_seed(a, b, counts):
+@pytest.mark.parametrize(
+    ("a", "b", "found"),
+    [
+        ("Ours", "SAC-MT", "yes, Ours is ahead; Ours has finished 3 of its 3 runs and SAC-MT 2"),
+        ("SAC-MT", "Ours", "Ours is ahead; SAC-MT has finished 2 of its 3 runs and Ours 3"),
+    ],
+)
+def test_the_reading_is_provisional_while_either_algorithm_lacks_a_replication_seed(a, b, found):
     """Ours has seeds 0, 3 and 5 (finals 0.5, 0.6, 0.55), SAC-MT seeds 0 and 3 (0.2, 0.4): every resampled difference
     is at least 0.5 - 0.4 = 0.1, so Ours is ahead (in either order), but SAC-MT's seed 5 has not finished."""
     runs = [*four_runs(), hand_run("Ours", 5, CALM, [[0.5, 0.5]] * 3, [0.55, 0.55])]
     summary = comparison_summary("MT2", runs, Comparison(a=a, b=b, replication_seeds=(0, 3, 5)))
-    assert (
-        f"Reading fixed before the runs, on seeds 0 3 5: Ours is ahead; {counts} of the 3 runs of each have finished, "
-        "so this is not the answer yet." in summary
-    )
+    assert f"Reading fixed before the runs, on seeds 0 3 5: {found}, so this is not the answer yet." in summary
+
+
+def test_a_seed_counts_once_however_many_of_its_runs_finished():
+    """Two finished runs of Ours' seed 3 do not stand in for its seed 5."""
+    runs = [*four_runs(), hand_run("Ours", 3, CALM, [[0.5, 0.5]] * 3, [0.55, 0.55])]
+    summary = comparison_summary("MT2", runs, Comparison(replication_seeds=(0, 3, 5)))
+    assert "Ours has finished 2 of its 3 runs and SAC-MT 2, so this is not the answer yet." in summary
+
+
+@pytest.mark.parametrize(
+    ("low", "high", "found"),
+    [
+        (0.0, 0.1, "not shown (the interval holds 0)"),
+        (-0.1, 0.0, "not shown (the interval holds 0)"),
+        (0.01, 0.1, "yes, Ours is ahead"),
+        (-0.1, -0.01, "SAC-MT is ahead"),
+    ],
+)
+def test_an_interval_that_ends_at_0_holds_it(low, high, found):
+    assert fixed_reading(MeanDifference((low + high) / 2, low, high, 1.0, 4.0, 0.5), Comparison()) == found
+
+
+def test_a_comparison_without_a_replication_has_no_reading():
+    assert "Reading" not in comparison_summary("MT2", four_runs(), Comparison())
+    assert "Reading" not in comparison_report("MT2", four_runs(), Comparison(), reps=20)
 
 
 @pytest.mark.parametrize(("a", "b"), [("Ours", "SAC-MT"), ("SAC-MT", "Ours")])

@@ -86,25 +86,24 @@ def mean_difference(a: np.ndarray, b: np.ndarray, reps: int = DIFFERENCE_REPS, s
 
 
 def fixed_reading(diff: MeanDifference, cmp: Comparison) -> str:
-    """The answer under the reading fixed before the runs (docs/results.md): ``a`` is ahead when the interval for
-    the difference lies above 0, ``b`` when it lies below 0, and not shown when it holds 0."""
+    """The answer under the reading fixed before the runs (docs/results.md): yes (``a`` is ahead) when the interval
+    for the difference lies above 0, ``b`` is ahead when it lies below 0, and not shown when it holds 0."""
     if diff.low > 0:
-        return f"{cmp.a} is ahead"
+        return f"yes, {cmp.a} is ahead"
     if diff.high < 0:
         return f"{cmp.b} is ahead"
     return "not shown (the interval holds 0)"
 
 
-def _reading_sentence(a: list[Run], b: list[Run], cmp: Comparison) -> str:
-    """The replication's answer under the fixed reading, said to be provisional until every seed has finished."""
-    seeds = " ".join(map(str, cmp.replication_seeds))
-    if len(a) < 2 or len(b) < 2:
-        return f"Reading fixed before the runs, on seeds {seeds}: too few runs yet."
-    found = fixed_reading(mean_difference(_means(a), _means(b)), cmp)
-    expected = len(cmp.replication_seeds)
-    if len(a) < expected or len(b) < expected:
-        found += f"; {len(a)} and {len(b)} of the {expected} runs of each have finished, so this is not the answer yet"
-    return f"Reading fixed before the runs, on seeds {seeds}: {found}."
+def _reading_sentence(a: list[Run], b: list[Run], diff: MeanDifference | None, cmp: Comparison) -> str:
+    """The replication's answer under the fixed reading, said to be provisional while a seed has no finished run."""
+    seeds = cmp.replication_seeds
+    found = "too few runs for an interval" if diff is None else fixed_reading(diff, cmp)
+    done = [len(set(seeds) & {run.seed for run in runs}) for runs in (a, b)]
+    if min(done) < len(seeds):
+        found += f"; {cmp.a} has finished {done[0]} of its {len(seeds)} runs and {cmp.b} {done[1]}, so this is not "
+        found += "the answer yet"
+    return f"Reading fixed before the runs, on {_replication_name(cmp)}: {found}."
 
 
 @dataclass(frozen=True)
@@ -157,12 +156,15 @@ def _pct(value: float) -> str:
     return f"{100 * value:.1f}"
 
 
-def _difference_row(name: str, a: list[Run], b: list[Run]) -> str:
+def _difference(a: list[Run], b: list[Run]) -> MeanDifference | None:
+    return None if len(a) < 2 or len(b) < 2 else mean_difference(_means(a), _means(b))
+
+
+def _difference_row(name: str, a: list[Run], b: list[Run], diff: MeanDifference | None) -> str:
     cells = [name, str(len(a)), str(len(b))]
-    if len(a) < 2 or len(b) < 2:
+    if diff is None:
         return "| " + " | ".join(cells + ["-"] * 4) + " |"
     means_a, means_b = _means(a), _means(b)
-    diff = mean_difference(means_a, means_b)
     cells += [
         f"{_pct(means_a.mean())} / {_pct(means_b.mean())}",
         f"{_pct(diff.value)} [{_pct(diff.low)}, {_pct(diff.high)}]",
@@ -234,14 +236,19 @@ def _fisher_line(
     return line + "."
 
 
+def _replication_name(cmp: Comparison) -> str:
+    return "seeds " + " ".join(map(str, cmp.replication_seeds))
+
+
 def _subsets(bench: str, runs: Sequence[Run], cmp: Comparison) -> dict[str, list[list[Run]]]:
     """Subset name (the replication's seeds, then "all seeds") -> [a's finished runs, b's], sorted by seed."""
     groups = group_runs(runs).get(bench, {})
     everything = [_finished(groups.get(label, []), None) for label in (cmp.a, cmp.b)]
     subsets = {}
     if cmp.replication_seeds:
-        name = "seeds " + " ".join(map(str, cmp.replication_seeds))
-        subsets[name] = [[run for run in pair if run.seed in cmp.replication_seeds] for pair in everything]
+        subsets[_replication_name(cmp)] = [
+            [run for run in pair if run.seed in cmp.replication_seeds] for pair in everything
+        ]
     subsets["all seeds"] = everything
     return subsets
 
@@ -256,18 +263,18 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
     sentences = []
     for name, (a, b) in subsets.items():
         found = f"{name.capitalize()} (n = {len(a)} and {len(b)}): "
-        if len(a) < 2 or len(b) < 2:
+        diff = _difference(a, b)
+        if diff is None:
             found += "too few runs for the difference"
         else:
-            diff = mean_difference(_means(a), _means(b))
             found += f"{100 * diff.value:+.1f} points [{_pct(diff.low)}, {_pct(diff.high)}]"
             found += f", Welch t {diff.t:.2f}, p {diff.p:.3f}"
         if by_run is not None:
             counts = [sum(_ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
             found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
         sentences.append(found + ".")
-    if cmp.replication_seeds:
-        sentences.insert(1, _reading_sentence(*subsets[next(iter(subsets))], cmp))
+        if cmp.replication_seeds and name == _replication_name(cmp):
+            sentences.append(_reading_sentence(a, b, diff, cmp))
     stem = safe_name(bench)
     return (
         f"{cmp.a} minus {cmp.b} as fixed before the runs (docs/results.md): the difference of the mean final success "
@@ -282,6 +289,9 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
     """The markdown report of ``cmp`` on the runs of benchmark ``bench`` that have a final evaluation (rliable's
     intervals from ``reps`` resamples)."""
     chosen = _subsets(bench, runs, cmp)
+    diffs = {name: _difference(*pair) for name, pair in chosen.items()}
+    replication = _replication_name(cmp)
+    reading = [_reading_sentence(*chosen[replication], diffs[replication], cmp)] if replication in chosen else []
     lines = [
         f"{bench}: {cmp.a} against {cmp.b}, the final success (mean over tasks of each run's final evaluation). "
         f"Difference: the mean over runs of {cmp.a} minus that of {cmp.b}, 95% percentile bootstrap over runs "
@@ -290,8 +300,8 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
         "",
         f"| Seeds | n {cmp.a} | n {cmp.b} | Means (%) | Difference (points) | Welch t (df) | p |",
         "|:--|--:|--:|--:|--:|--:|--:|",
-        *(_difference_row(name, *pair) for name, pair in chosen.items()),
-        *(["", _reading_sentence(*chosen[next(iter(chosen))], cmp)] if cmp.replication_seeds else []),
+        *(_difference_row(name, *pair, diffs[name]) for name, pair in chosen.items()),
+        *(["", *reading] if reading else []),
         "",
         f"rliable over runs x tasks (95% stratified bootstrap, {reps} resamples, seed {DEFAULT_SEED}); "
         f"P({cmp.a} > {cmp.b}) averages over tasks the chance that a run of {cmp.a} beats one of {cmp.b}, ties "
