@@ -29,7 +29,6 @@ import statistics
 import subprocess
 import sys
 import time
-from pathlib import Path
 
 N_TASKS = 10
 WIDTH, DEPTH = 400, 3
@@ -38,7 +37,6 @@ CRITICS = ("shared", "per_task")
 
 def package_updates(repeats: int) -> dict[str, float]:
     """Updates/s of one ``model.train`` call per critic kind, timed round-robin."""
-    sys.path.insert(0, str(Path(__file__).parent))
     from bench_updates import fill_buffer, interleaved_medians, quiet, synthetic_env
 
     from sb3_mtte import MTSAC

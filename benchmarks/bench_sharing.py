@@ -51,7 +51,6 @@ def worker(start_at: float, seconds: float, torch_first: bool) -> None:
         import torch  # noqa: F401  # a script that imports torch before the package
     import sb3_mtte
 
-    sys.path.insert(0, str(Path(__file__).parent))
     from bench_updates import fill_buffer, quiet, synthetic_env
 
     model = quiet(sb3_mtte.MTSAC("MlpPolicy", synthetic_env(10), buffer_size=5120, device="cpu", seed=0))

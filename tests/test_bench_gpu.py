@@ -4,13 +4,13 @@ report of another machine is not mixed in. The measurements are stubbed: their c
 from __future__ import annotations
 
 import json
-import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import bench_gpu
+from script_loader import load_script
 
 from sb3_mtte.common import gpu_defaults
+
+bench_gpu = load_script("benchmarks/bench_gpu.py")
 
 
 def stub_measurements(monkeypatch) -> list[bool]:

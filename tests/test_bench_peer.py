@@ -2,13 +2,10 @@
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
+from script_loader import load_script
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-from bench_peer import main, summary
+bench_peer = load_script("benchmarks/bench_peer.py")
 
 
 def one_round(ref_upd: float, ref_e2e: float, shared: tuple[float, float], per_task: tuple[float, float]) -> dict:
@@ -27,7 +24,7 @@ def test_medians_and_ratios() -> None:
         one_round(12.0, 90.0, (15.0, 110.0), (11.0, 80.0)),
         one_round(11.0, 200.0, (13.0, 120.0), (10.0, 85.0)),
     ]
-    medians = summary(rounds)
+    medians = bench_peer.summary(rounds)
     assert medians["reference"] == {"updates_per_s": 11.0, "env_steps_per_s": 100.0}
     assert medians["sb3-mtte shared critic"] == {
         "updates_per_s": 13.0,
@@ -40,4 +37,4 @@ def test_medians_and_ratios() -> None:
 
 def test_the_reference_is_required() -> None:
     with pytest.raises(SystemExit):
-        main(["--rounds", "1"])
+        bench_peer.main(["--rounds", "1"])

@@ -1,20 +1,17 @@
-"""benchmarks/nt_gain_runs.py reads mu, C_s, w and the transfer matrix of a run folder as its docstring says: a
+"""scripts/studies/nt_gain_runs.py reads mu, C_s, w and the transfer matrix of a run folder as its docstring says: a
 three-task run with hand-written matrices, each figure computed by hand."""
 
 from __future__ import annotations
 
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from script_loader import load_script
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
-
-import nt_gain_runs  # noqa: E402
+nt_gain_runs = load_script("scripts/studies/nt_gain_runs.py")
 
 T1 = [[1.0, -0.1, 0.2], [0.1, 2.0, -0.2], [-0.3, 0.3, 1.0]]
 T2 = [[2.0, 0.4, 0.4], [0.4, 2.0, 0.4], [-0.4, -0.4, 2.0]]

@@ -3,19 +3,18 @@ rest they make up the wall time."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
-import profile_gpu
-from bench_updates import quiet, synthetic_env
+from script_loader import load_script
 
 from sb3_mtte import MTSAC
 
+bench_updates = load_script("benchmarks/bench_updates.py")
+profile_gpu = load_script("benchmarks/profile_gpu.py")
+
 
 def warm_model(n_tasks: int = 3) -> MTSAC:
-    model = quiet(MTSAC("MlpPolicy", synthetic_env(n_tasks), learning_starts=4 * n_tasks, buffer_size=200,
-                        batch_size=8, policy_kwargs=dict(net_arch=[8]), device="cpu", seed=0))  # fmt: skip
+    env = bench_updates.synthetic_env(n_tasks)
+    model = bench_updates.quiet(MTSAC("MlpPolicy", env, learning_starts=4 * n_tasks, buffer_size=200, batch_size=8,
+                                      policy_kwargs=dict(net_arch=[8]), device="cpu", seed=0))  # fmt: skip
     model.learn(model.learning_starts + 2 * n_tasks)
     return model
 

@@ -3,10 +3,10 @@
 # bench_updates.py on the GPU (updates/s of every variant as ratios to SB3's SAC in the same run, and real MT10
 # learn()). Writes under ${OUT:-cuda_check}/: tests.log, suite.log, bench_cuda.json. Exits non-zero when a test
 # fails (pipefail: the status of pytest, not of the tail that shows its end) or the benchmark does.
-#   bash benchmarks/cuda_check.sh
+#   bash scripts/gpu/cuda_check.sh
 set -uo pipefail
 status=0
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 out="${OUT:-cuda_check}"
 mkdir -p "$out"
 export MUJOCO_GL="${MUJOCO_GL:-egl}"

@@ -9,7 +9,7 @@ nor carried, and removes what the install pulled in that the machine lacks (a ne
 The package's own requirements that the machine lacks (rl-zoo3, optuna, ...) are left out: the check must not
 import them, and in this venv it cannot. Prints the venv's python last.
 
-    python benchmarks/device_venv.py /tmp/sb3_mtte_device_venv [--python python3.11] [--torch torch==2.13.0]
+    python scripts/gpu/device_venv.py /tmp/sb3_mtte_device_venv [--python python3.11] [--torch torch==2.13.0]
 """
 
 from __future__ import annotations

@@ -16,9 +16,9 @@ Each run writes ``OUT/<env>/<algo>_seed<seed>.json``: the curve (``steps``, ``re
 hyperparameters, seed, wall time, env steps/s and library versions. ``--plot`` draws every run found under OUT
 into one figure (mean +- std over seeds): Pendulum return, reach return, reach success::
 
-    python benchmarks/sac_parity.py --envs pendulum --seeds 0 1 2
-    python benchmarks/sac_parity.py --envs reach --seeds 0 1 2
-    python benchmarks/sac_parity.py --no-train --plot
+    python scripts/studies/sac_parity.py --envs pendulum --seeds 0 1 2
+    python scripts/studies/sac_parity.py --envs reach --seeds 0 1 2
+    python scripts/studies/sac_parity.py --no-train --plot
 """
 
 from __future__ import annotations

@@ -11,8 +11,8 @@ C_s and its mean weight, how far w is from uniform (total variation distance, me
 quarter), the final success (10 episodes per task) and the env steps until the periodic evaluation first
 reaches 90%. Prints one JSON object; ``--out FILE`` also writes it.
 
-    python benchmarks/nt_robustness.py --seeds 0 1 2 --out docs/results/nt_robustness.json
-    python benchmarks/nt_robustness.py --seeds 0 1 2 --measures per_batch --gains 1 50 \
+    python scripts/studies/nt_robustness.py --seeds 0 1 2 --out docs/results/nt_robustness.json
+    python scripts/studies/nt_robustness.py --seeds 0 1 2 --measures per_batch --gains 1 50 \
         --out docs/results/nt_gain_study.json
 """
 
@@ -31,10 +31,10 @@ import yaml
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_mtte import MTSACTE, __version__, evaluate_success, make_mt_env
-from sb3_mtte.experiments.configs import find_config_dir
-from sb3_mtte.experiments.records import distance_from_uniform
+from sb3_mtte.experiments.results.metrics import distance_from_uniform
+from sb3_mtte.experiments.zoo.configs import find_config_dir
 
-from nt_gain_runs import strictly_largest  # benchmarks/, beside this script
+from nt_gain_runs import strictly_largest  # beside this script
 
 BENCHMARK = "toy-conflict"
 LAUNCHER_KEYS = ("n_timesteps", "policy", "eval_freq", "eval_episodes", "save_freq")
@@ -226,7 +226,7 @@ def main() -> None:
         "runs": runs,
         "versions": versions(),
         "summary_format": "[mean, std] over seeds; counts are out of `seeds`",
-        "command": "python benchmarks/nt_robustness.py --seeds "
+        "command": "python scripts/studies/nt_robustness.py --seeds "
         + " ".join(map(str, args.seeds))
         + " --measures "
         + " ".join(args.measures)

@@ -1,6 +1,6 @@
 """Figure of the DEV6 embedding study: the probe of sampled z and E_phi's std over env steps per task.
 
-    python benchmarks/plot_embedding_study.py docs/results/embedding_study_DEV6.json \
+    python scripts/studies/plot_embedding_study.py docs/results/embedding_study_DEV6.json \
         --out docs/figures/embedding_study_DEV6.png
 """
 

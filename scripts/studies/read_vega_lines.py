@@ -1,7 +1,7 @@
 """Read the lines of a Vega line chart saved as SVG at given x values (how the README's published anchors at a
 budget were read off a peer's figure).
 
-    python benchmarks/read_vega_lines.py fig3_mt10.svg --at 1.0
+    python scripts/studies/read_vega_lines.py fig3_mt10.svg --at 1.0
 
 The axes are calibrated from their tick marks and labels (``1M``, ``2M``, ... on x, in millions; ``0.2``, ... on y);
 each line is the on-curve points of its path (the end point of every segment), read by linear interpolation. A

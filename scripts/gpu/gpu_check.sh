@@ -18,18 +18,18 @@
 # Exits non-zero when a test or a measurement fails.
 #
 # The machine needs PyTorch with CUDA and the wheels in .whl/ (ignored by git): the package's runtime dependencies
-# that its image lacks (benchmarks/gpu_wheels.txt; the image's packages are benchmarks/device_packages.txt) and the
+# that its image lacks (scripts/gpu/gpu_wheels.txt; the image's packages are scripts/gpu/device_packages.txt) and the
 # package's own wheel, installed into /tmp/site first. Nothing renders: MUJOCO_GL=disable.
-#   bash benchmarks/gpu_wheels.sh             # with a package registry, into .whl/
-#   bash benchmarks/gpu_check.sh updates      # on the GPU machine, from the repository root: the first call
-#   bash benchmarks/gpu_check.sh end_to_end   # the second call
-#   bash benchmarks/gpu_check.sh profile      # a third, where a target is missed
+#   bash scripts/gpu/gpu_wheels.sh             # with a package registry, into .whl/
+#   bash scripts/gpu/gpu_check.sh updates      # on the GPU machine, from the repository root: the first call
+#   bash scripts/gpu/gpu_check.sh end_to_end   # the second call
+#   bash scripts/gpu/gpu_check.sh profile      # a third, where a target is missed
 # DRY_RUN=1 runs every step on the CPU at toy sizes in a venv made from nothing but the GPU machine's packages and
-# the carried wheels (benchmarks/device_venv.py; DRY_RUN_PYTHON and DRY_RUN_TORCH stand in for the machine's Python
+# the carried wheels (scripts/gpu/device_venv.py; DRY_RUN_PYTHON and DRY_RUN_TORCH stand in for the machine's Python
 # and torch, default python3.11 and torch==2.13.0; DRY_RUN_VENV is its folder), so that an import the machine
 # cannot satisfy fails here too.
 set -uo pipefail
-cd "$(dirname "$0")/.."
+cd "$(dirname "$0")/../.."
 parts=("$@")
 [ ${#parts[@]} -gt 0 ] || parts=(updates end_to_end)
 for part in "${parts[@]}"; do
@@ -45,7 +45,7 @@ out="$(cd "$out" && pwd)"
 export MUJOCO_GL="${MUJOCO_GL:-disable}" PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
 if [ "${DRY_RUN:-0}" = 1 ]; then
     export PYTHONPATH="$PWD"  # the checkout and the venv, nothing of this machine's
-    python="$(python3 benchmarks/device_venv.py "${DRY_RUN_VENV:-/tmp/sb3_mtte_device_venv}" \
+    python="$(python3 scripts/gpu/device_venv.py "${DRY_RUN_VENV:-/tmp/sb3_mtte_device_venv}" \
         --python "${DRY_RUN_PYTHON:-python3.11}" --torch "${DRY_RUN_TORCH:-torch==2.13.0}" | tail -1)" || exit 1
     tests=(-k "not cuda")
     updates=(--n-tasks 10 --repeats 3 --device cpu)

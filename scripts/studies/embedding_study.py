@@ -8,7 +8,7 @@ sees), from E_phi's mean, and E_phi's standard deviation at every J^rep update (
 ``--probe-every`` vector steps), the wall time per vector step, and, with ``--eval-episodes``, the final
 per-task success (deterministic actions, one goal variation per episode). Writes one JSON file per run.
 
-    python benchmarks/embedding_study.py --setting chosen_defaults --seed 0 --per-task-steps 6000 --out-dir study
+    python scripts/studies/embedding_study.py --setting chosen_defaults --seed 0 --per-task-steps 6000 --out-dir study
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ from nt_robustness import versions
 from stable_baselines3.common.callbacks import BaseCallback
 
 from sb3_mtte import MTSAC, MTSACTE, evaluate_success, make_mt_env
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.zoo.configs import zoo_hyperparameters
 
 FORMER = {"c_vae": 1e-2, "policy_kwargs": {"z_init_std": None, "z_mean_init_gain": 1.0}}
 """The defaults before this study: E_phi at PyTorch's initialisation (std ~1, mean gain 1), c_vae 1e-2."""

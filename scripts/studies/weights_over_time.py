@@ -8,7 +8,7 @@ time) and the task weighted most on average over the window. Where the run logge
 and records that keep it), also the median coupling (mean |T[k, i]|, k != i, over mean |T[k, k]|) and the share of
 off-diagonal entries below 0 (the pairs Eq. 6 counts as harmful) over the window.
 
-    python benchmarks/weights_over_time.py runs/mt10_100k/mtsacte docs/records/MT10-100k --window 20000
+    python scripts/studies/weights_over_time.py runs/mt10_100k/mtsacte docs/records/MT10-100k --window 20000
 """
 
 from __future__ import annotations
@@ -19,9 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sb3_mtte.experiments.records import distance_from_uniform, harmful_fraction, transfer_coupling
+from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
 
-from nt_gain_runs import mean_consecutive_correlation  # benchmarks/, beside this script
+from nt_gain_runs import mean_consecutive_correlation  # beside this script
 
 
 def from_run_folder(path: Path) -> tuple[str, np.ndarray, np.ndarray, dict[str, np.ndarray]]:

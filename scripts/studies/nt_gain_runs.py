@@ -23,7 +23,7 @@ Runs still training (or stopped before their budget) are skipped, with a line na
 Summaries are [mean, std] over seeds; ``most_harmful_agree`` counts the seeds whose most harmful task on average is
 the group's most common one.
 
-    python benchmarks/nt_gain_runs.py runs/dev6_gain1 runs/dev6_gain50 runs/toy_gain1 \
+    python scripts/studies/nt_gain_runs.py runs/dev6_gain1 runs/dev6_gain50 runs/toy_gain1 \
         runs/toy_gain50 --conflicting toy-conflict=3 --out docs/results/nt_gain_runs.json
 """
 
@@ -40,9 +40,9 @@ from typing import Any
 
 import numpy as np
 
-from sb3_mtte.experiments.records import distance_from_uniform, harmful_fraction, transfer_coupling
-from sb3_mtte.experiments.runs import Run, discover_runs, nt_arrays
-from sb3_mtte.experiments.statistics import final_task_scores, unfinished
+from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
+from sb3_mtte.experiments.results.runs import Run, discover_runs, nt_arrays
+from sb3_mtte.experiments.results.statistics import final_task_scores, unfinished
 
 
 DEFAULT_GAIN = 50.0  # MTSACTEPolicy's z_mean_init_gain
@@ -204,7 +204,7 @@ def main() -> None:
     parser.add_argument("--markdown", action="store_true", help="print the summary as a markdown table")
     args = parser.parse_args()
     result = study(args.sources, parse_conflicting(args.conflicting), args.running)
-    result["command"] = "python benchmarks/nt_gain_runs.py " + " ".join(
+    result["command"] = "python scripts/studies/nt_gain_runs.py " + " ".join(
         [*map(str, args.sources), *(["--conflicting", *args.conflicting] if args.conflicting else [])]
     )
     text = json.dumps(result, indent=1)

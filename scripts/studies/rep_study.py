@@ -5,7 +5,7 @@ per iteration the linear probe of the task from sampled z (what the policy sees)
 standard deviation; and the mean success (5 episodes per task) every 500 vector steps. Prints one JSON object;
 ``--out FILE`` also writes it.
 
-    python benchmarks/rep_study.py --seeds 0 1 --out docs/results/rep_study_toy.json
+    python scripts/studies/rep_study.py --seeds 0 1 --out docs/results/rep_study_toy.json
 """
 
 from __future__ import annotations
@@ -84,7 +84,7 @@ def main() -> None:
         "summary": summary,
         "runs": runs,
         "versions": versions(),
-        "command": f"python benchmarks/rep_study.py --seeds {' '.join(map(str, args.seeds))}",
+        "command": f"python scripts/studies/rep_study.py --seeds {' '.join(map(str, args.seeds))}",
     }
     print_and_write(result, args.out)
 
