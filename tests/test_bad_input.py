@@ -10,13 +10,13 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 import pytest
-from stable_baselines3.common.vec_env import DummyVecEnv
 from conftest import ENV, TINY, small_model_kwargs
+from stable_baselines3.common.vec_env import DummyVecEnv
 
 from sb3_mtte import MTSAC, MTSACTE
 from sb3_mtte.common.utils import check_multitask_env, check_one_hot
 from sb3_mtte.envs import OneHotTaskWrapper
-from sb3_mtte.zoo import main
+from sb3_mtte.experiments.cli import main
 
 MTSAC_KWARGS = {"learning_starts": 100, "batch_size": 8, "buffer_size": 1_000, "policy_kwargs": {"net_arch": [16]}}
 ALGORITHMS = {"MTSAC": (MTSAC, MTSAC_KWARGS), "MTSACTE": (MTSACTE, small_model_kwargs(learning_starts=100))}
@@ -170,12 +170,12 @@ def test_train_hyperparameter_mistakes_end_with_one_line(tmp_path, algo, params,
 def test_a_value_error_from_outside_the_package_keeps_its_traceback(tmp_path, monkeypatch):
     """Only the package's and rl-zoo's own refusals become one line; a ValueError raised elsewhere (a bug, not a
     setting) reaches the user with its traceback."""
-    from sb3_mtte.experiments import manager
+    from sb3_mtte.experiments.zoo import adapter
 
     def broken_setup(self):
         return np.zeros(2).reshape(3)
 
-    monkeypatch.setattr(manager.ExperimentManager, "setup_experiment", broken_setup)
+    monkeypatch.setattr(adapter.ExperimentManager, "setup_experiment", broken_setup)
     with pytest.raises(ValueError, match="cannot reshape"):
         main(["train", "--algo", "mtsacte", "--env", ENV, "-f", str(tmp_path), "--eval-freq", "-1", *TINY])
 

@@ -13,8 +13,10 @@ from conftest import ENV
 
 from sb3_mtte.common.evaluation import MultiTaskEvalCallback
 from sb3_mtte.envs import make_mt_env
-from sb3_mtte.experiments import evaluate, plot, records, sweep
-from sb3_mtte.zoo import main as zoo_main
+from sb3_mtte.experiments.cli import main as zoo_main
+from sb3_mtte.experiments.playback import evaluate_model as evaluate
+from sb3_mtte.experiments.results import plot, records
+from sb3_mtte.experiments.zoo import sweep
 
 
 def one_line_error(capsys, command, argv: list[str]) -> str:
@@ -122,7 +124,7 @@ def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
     monkeypatch.setitem(sys.modules, "ray", None)  # import ray raises ImportError
     argv = ["--algos", "mtsac_mt", "--envs", "toy-conflict", "--out", str(tmp_path / "sweep")]
     message = one_line_error(capsys, sweep.main, argv)
-    assert message == 'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
+    assert message == 'sb3-mtte sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
 
 
 @pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"], ["--width", "0"]])

@@ -1,4 +1,4 @@
-"""The pre-registered comparison (sb3_mtte.experiments.compare) against hand computations and plain loops."""
+"""The pre-registered comparison (sb3_mtte.experiments.results.compare) against hand computations and plain loops."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_mtte.experiments.compare import (
+from sb3_mtte.experiments.results.compare import (
     PREREGISTERED,
     Comparison,
     MeanDifference,
@@ -20,10 +20,10 @@ from sb3_mtte.experiments.compare import (
     mean_difference,
     runaway,
 )
-from sb3_mtte.experiments.figures import PlotOptions
-from sb3_mtte.experiments.plot import _write_table1
-from sb3_mtte.experiments.results import benchmark_statistics
-from sb3_mtte.experiments.runs import Run
+from sb3_mtte.experiments.results.figures import PlotOptions
+from sb3_mtte.experiments.results.plot import _write_table1
+from sb3_mtte.experiments.results.runs import Run
+from sb3_mtte.experiments.results.tables import benchmark_statistics
 
 TASKS = ["reach-v3", "push-v3"]
 

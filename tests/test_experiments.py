@@ -12,10 +12,11 @@ import pytest
 import yaml
 from conftest import ENV, tiny_train
 
-from sb3_mtte.experiments import cli, evaluate, plot
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments import cli
+from sb3_mtte.experiments.playback import evaluate_model as evaluate
+from sb3_mtte.experiments.results import plot
+from sb3_mtte.experiments.results.runs import label_order
 from sb3_mtte.experiments.run_info import read_run_info
-from sb3_mtte.experiments.runs import label_order
 from sb3_mtte.experiments.variants import (
     VARIANTS,
     Build,
@@ -26,6 +27,7 @@ from sb3_mtte.experiments.variants import (
     unregister_variant,
     variant_labels,
 )
+from sb3_mtte.experiments.zoo.configs import zoo_hyperparameters
 
 ROOT = Path(__file__).resolve().parent.parent
 FROZEN = Path(__file__).resolve().parent / "data" / "zoo_hyperparameters.json"
@@ -43,13 +45,14 @@ def test_family_files_are_package_data_read_from_any_folder(tmp_path, monkeypatc
     """zoo_configs/ ships inside the package as sb3_mtte.zoo_configs (a wheel installs it), every subpackage of
     sb3_mtte is listed in setup.cfg's packages, and the family files are found from any working folder."""
     import sb3_mtte
-    from sb3_mtte.experiments.configs import find_config_dir
+    from sb3_mtte.experiments.zoo.configs import find_config_dir
 
     config = configparser.ConfigParser()
     config.read(ROOT / "setup.cfg")
     listed = config["options"]["packages"].split()
     package_dir = Path(sb3_mtte.__file__).resolve().parent
-    subpackages = {f"sb3_mtte.{init.parent.name}" for init in package_dir.glob("*/__init__.py")}
+    inits = package_dir.rglob("*/__init__.py")
+    subpackages = {".".join(("sb3_mtte", *init.parent.relative_to(package_dir).parts)) for init in inits}
     assert set(listed) == {"sb3_mtte", "sb3_mtte.zoo_configs", *subpackages}
     assert config["options"]["package_dir"].split() == ["sb3_mtte.zoo_configs", "=", "zoo_configs"]
     shipped = config["options.package_data"]["sb3_mtte.zoo_configs"].split()
@@ -115,7 +118,12 @@ def test_console_script_is_declared_and_dispatches(capsys):
     assert exit_info.value.code == 2 and "sb3-mtte: unknown command 'unknown'" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize(("run", "prog"), [(cli.main, "sb3-mtte"), (cli.zoo_main, "python -m sb3_mtte.zoo")])
+def module_main(argv):
+    """The commands as ``python -m sb3_mtte`` runs them."""
+    return cli.main(argv, prog="python -m sb3_mtte")
+
+
+@pytest.mark.parametrize(("run", "prog"), [(cli.main, "sb3-mtte"), (module_main, "python -m sb3_mtte")])
 def test_a_misspelled_command_ends_with_one_line_naming_the_nearest(capsys, run, prog):
     with pytest.raises(SystemExit) as exit_info:
         run(["enjoi", "--env", "MT10"])
@@ -211,7 +219,7 @@ def test_evaluate_names_the_reward_functions_in_its_header():
 
 
 def test_record_names_each_run_it_skips(tmp_path, capsys):
-    from sb3_mtte.experiments import records
+    from sb3_mtte.experiments.results import records
 
     run = tmp_path / "runs" / "mtsac_mt" / f"{ENV}_1"
     run.mkdir(parents=True)
@@ -220,8 +228,8 @@ def test_record_names_each_run_it_skips(tmp_path, capsys):
     with pytest.raises(SystemExit):
         records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     assert capsys.readouterr().err.splitlines()[0] == (
-        f"Skipped {run} ({ENV}, SAC-MT, seed 4): no final evaluation (success.json); evaluate it first: python -m "
-        f"sb3_mtte.evaluate {run / (ENV + '.zip')} --episodes 50"
+        f"Skipped {run} ({ENV}, SAC-MT, seed 4): no final evaluation (success.json); evaluate it first: sb3-mtte "
+        f"evaluate {run / (ENV + '.zip')} --episodes 50"
     )
 
 
@@ -248,7 +256,7 @@ def test_train_help_is_argparse_help_with_the_launcher_options(capsys):
 
 
 def test_sweep_help_describes_every_option(capsys):
-    from sb3_mtte.experiments import sweep
+    from sb3_mtte.experiments.zoo import sweep
 
     with pytest.raises(SystemExit):
         sweep.main(["--help"])
@@ -259,14 +267,15 @@ def test_sweep_help_describes_every_option(capsys):
 @pytest.mark.parametrize("module", ["evaluate", "plot", "compare", "sweep"])
 @pytest.mark.parametrize("called_as", ["console script", "module"])
 def test_usage_lines_name_the_entry_point_that_was_called(monkeypatch, capsys, module, called_as):
-    from sb3_mtte.experiments import compare, sweep
+    from sb3_mtte.experiments.results import compare
+    from sb3_mtte.experiments.zoo import sweep
 
     main = {"evaluate": evaluate.main, "plot": plot.main, "compare": compare.main, "sweep": sweep.main}[module]
-    argv0 = "/venv/bin/sb3-mtte" if called_as == "console script" else f"/src/sb3_mtte/{module}.py"
+    argv0 = "/venv/bin/sb3-mtte" if called_as == "console script" else "/src/sb3_mtte/__main__.py"
     monkeypatch.setattr("sys.argv", [argv0])
     with pytest.raises(SystemExit):
         main(["--help"])
-    expected = f"sb3-mtte {module}" if called_as == "console script" else f"python -m sb3_mtte.{module}"
+    expected = f"sb3-mtte {module}" if called_as == "console script" else f"python -m sb3_mtte {module}"
     assert capsys.readouterr().out.startswith(f"usage: {expected} ")
 
 
@@ -281,7 +290,7 @@ def test_enjoy_help_lists_the_package_keys(capsys):
 def test_record_of_a_finished_run(tmp_path):
     """A trained and evaluated run leaves one small JSON record with its curve, final per-task success, settings
     and commit; runs without a final evaluation leave none."""
-    from sb3_mtte.experiments import records
+    from sb3_mtte.experiments.results import records
 
     run = tiny_train(tmp_path / "runs", "mtsacte", "-params", "learning_starts:100", "--eval-freq", "100", steps=200)
     with pytest.raises(SystemExit):

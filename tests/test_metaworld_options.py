@@ -12,15 +12,15 @@ import pytest
 from conftest import TINY
 
 from sb3_mtte.envs import MT10_TASKS, MT25_TASKS, get_task_names, make_env_fns, make_mt_env
-from sb3_mtte.experiments import records
-from sb3_mtte.experiments.checkpoints import load_model
-from sb3_mtte.experiments.configs import PER_TASK_KEYS, zoo_hyperparameters
+from sb3_mtte.experiments.cli import main
 from sb3_mtte.experiments.env_ids import benchmark_help, env_id_n_tasks, make_task_env, register_env_id
-from sb3_mtte.experiments.results import benchmark_statistics, table1
+from sb3_mtte.experiments.results import records
+from sb3_mtte.experiments.results.runs import Run, group_runs
+from sb3_mtte.experiments.results.tables import benchmark_statistics, table1
 from sb3_mtte.experiments.run_info import read_run_info
-from sb3_mtte.experiments.runs import Run, group_runs
 from sb3_mtte.experiments.variants import VARIANTS
-from sb3_mtte.zoo import main
+from sb3_mtte.experiments.zoo.configs import PER_TASK_KEYS, zoo_hyperparameters
+from sb3_mtte.experiments.zoo.run_checkpoints import load_model
 
 PAIR = ["reach-v3", "push-v3"]
 SAMPLES = Path(__file__).resolve().parent / "data" / "records"

@@ -10,8 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_mtte import plot
-from sb3_mtte.experiments import figures, summary_figures
+from sb3_mtte.experiments.results import figures, plot, summary_figures
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 BUDGET = 800  # env steps, all tasks

@@ -10,17 +10,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sb3_mtte import plot
-from sb3_mtte.experiments import records, summary_figures, variants
-from sb3_mtte.experiments.bellman_table import bellman_table
-from sb3_mtte.experiments.results import runs_table
-from sb3_mtte.experiments.runs import Run, read_progress_csv
-from sb3_mtte.experiments.statistics import (
+from sb3_mtte.experiments import variants
+from sb3_mtte.experiments.results import plot, records, summary_figures
+from sb3_mtte.experiments.results.bellman_table import bellman_table
+from sb3_mtte.experiments.results.runs import Run, read_progress_csv
+from sb3_mtte.experiments.results.statistics import (
     aggregate_estimates,
     curve_estimates,
     improvement_probabilities,
     performance_profiles,
 )
+from sb3_mtte.experiments.results.tables import runs_table
 
 ROOT = Path(__file__).resolve().parent.parent
 SAMPLES = Path(__file__).resolve().parent / "data" / "records"
@@ -105,10 +105,14 @@ def test_curve_estimates_average_runs_and_tasks_at_every_time():
 
 # ================================================================================================ plot from records
 def readme_plot_command() -> list[str]:
-    """The arguments of the README's command that redraws the figures from docs/records."""
-    readme = (ROOT / "README.md").read_text()
-    (line,) = re.findall(r"^python -m sb3_mtte\.plot docs/records .*$", readme, flags=re.MULTILINE)
-    return shlex.split(line)[3:]
+    """The arguments of the documented command that redraws the figures from docs/records (the README's, else the
+    docs')."""
+    for path in [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]:
+        lines = set(re.findall(r"^sb3-mtte plot docs/records .*$", path.read_text(), flags=re.MULTILINE))
+        if lines:
+            (line,) = lines
+            return shlex.split(line)[2:]
+    raise AssertionError("no line `sb3-mtte plot docs/records ...` in README.md or docs/")
 
 
 def test_readme_command_draws_one_figure_set_and_table_per_benchmark_from_records(tmp_path, monkeypatch, capsys):
@@ -195,7 +199,7 @@ def test_an_empty_folder_gets_one_line_naming_the_fix(tmp_path, capsys):
         records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     skipped, message = capsys.readouterr().err.splitlines()  # the run it skipped and why, then what to do
     assert skipped.startswith(f"Skipped {unevaluated} (MT10, mtsac_mt, seed 0)")
-    assert "python -m sb3_mtte.evaluate <run folder>" in message
+    assert "sb3-mtte evaluate <run folder>" in message
     (tmp_path / "nothing").mkdir()
     with pytest.raises(SystemExit) as exit_info:
         plot.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "figures")])

@@ -10,9 +10,7 @@ from conftest import ENV, tiny_train
 
 from sb3_mtte import MTSAC
 from sb3_mtte.common.update_hooks import UpdateHook
-from sb3_mtte.experiments import evaluate
-from sb3_mtte.experiments.checkpoints import load_model
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.playback import evaluate_model as evaluate
 from sb3_mtte.experiments.run_info import read_run_info
 from sb3_mtte.experiments.variants import (
     FAMILIES,
@@ -29,6 +27,8 @@ from sb3_mtte.experiments.variants import (
     unregister_family,
     unregister_variant,
 )
+from sb3_mtte.experiments.zoo.configs import zoo_hyperparameters
+from sb3_mtte.experiments.zoo.run_checkpoints import load_model
 from sb3_mtte.mtsac.policies import MTSACPolicy
 
 RECORDS: list[dict[str, th.Tensor]] = []

@@ -14,11 +14,11 @@ import pytest
 from conftest import ENV, tiny_train
 from matplotlib.colors import to_hex
 
-from sb3_mtte import evaluate, plot, sweep
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments import figures, summary_figures
-from sb3_mtte.experiments import records as records_cli
-from sb3_mtte.experiments import runs as plot_runs
+from sb3_mtte.experiments.playback import evaluate_model as evaluate
+from sb3_mtte.experiments.results import figures, plot, summary_figures
+from sb3_mtte.experiments.results import records as records_cli
+from sb3_mtte.experiments.results import runs as plot_runs
 from sb3_mtte.experiments.run_info import (
     append_resume,
     collect_run_info,
@@ -28,9 +28,10 @@ from sb3_mtte.experiments.run_info import (
     update_run_info,
     write_run_info,
 )
-from sb3_mtte.experiments.sweep import env_id_for, plan_trials, trial_command
 from sb3_mtte.experiments.variants import label_of as algo_label
 from sb3_mtte.experiments.variants import variant_labels
+from sb3_mtte.experiments.zoo import sweep
+from sb3_mtte.experiments.zoo.sweep import env_id_for, plan_trials, trial_command
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 

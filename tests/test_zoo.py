@@ -1,4 +1,4 @@
-"""Tests of the rl-zoo launcher (sb3_mtte.zoo): train, sub-env i = task i, configs, resume, optuna (enjoy and video:
+"""Tests of the rl-zoo launcher (sb3-mtte train): train, sub-env i = task i, configs, resume, optuna (enjoy and video:
 test_zoo_playback.py)."""
 
 from __future__ import annotations
@@ -20,12 +20,12 @@ from stable_baselines3.common.save_util import load_from_pkl
 
 from sb3_mtte import MTSAC, MTSACTE
 from sb3_mtte.common.utils import check_one_hot, get_task_names
-from sb3_mtte.experiments.checkpoints import find_checkpoints, load_model
-from sb3_mtte.experiments.configs import zoo_hyperparameters
+from sb3_mtte.experiments.cli import main
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, make_task_env, register_env_id, split_env_id
 from sb3_mtte.experiments.run_info import read_run_info
 from sb3_mtte.experiments.variants import VARIANTS, algo_classes
-from sb3_mtte.zoo import main
+from sb3_mtte.experiments.zoo.configs import zoo_hyperparameters
+from sb3_mtte.experiments.zoo.run_checkpoints import find_checkpoints, load_model
 
 ALGO_KEYS = algo_classes()
 ALGO_LABELS = {key: variant.label for key, variant in VARIANTS.items()}
@@ -168,14 +168,14 @@ def _progress(run: Path) -> list[dict[str, str]]:
 
 
 def test_resume_of_a_folder_that_is_not_a_run_names_the_fix(tmp_path):
-    from sb3_mtte.zoo import main
+    from sb3_mtte.experiments.cli import main
 
     with pytest.raises(SystemExit, match=r"not a run folder \(no run_info.json\); give <log folder>/<algo>/<env>_<id>"):
         main(["train", "--resume", str(tmp_path)])
 
 
 def test_a_benchmark_without_hyperparameters_or_a_resume_without_a_run_names_the_fix(tmp_path):
-    from sb3_mtte.zoo import main
+    from sb3_mtte.experiments.cli import main
 
     with pytest.raises(SystemExit, match=r"mtsac_mt has no hyperparameters for toy-conflict-3 \(its entries: .*MT10"):
         main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict-3", "-f", str(tmp_path)])
@@ -254,7 +254,7 @@ def test_resume_of_a_finished_run_with_a_larger_budget(tmp_path):
 
 
 def test_a_resumed_run_keeps_its_progress_bar_setting(tmp_path, monkeypatch):
-    from sb3_mtte.experiments import launcher
+    from sb3_mtte.experiments.zoo import launcher
 
     run = tiny_train(tmp_path, "mtsac_mt", steps=100)  # started with --no-progress
     argvs = []
@@ -273,7 +273,7 @@ def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
     """Every evaluation at 0 success: best_model.zip is the model of the last evaluation, not of the first."""
     from sb3_mtte.common import evaluation
     from sb3_mtte.envs import make_mt_env
-    from sb3_mtte.experiments.callbacks import ZooEvalCallback
+    from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback
 
     def no_success(model, env, episodes_per_task, deterministic):
         return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
@@ -291,7 +291,7 @@ def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_mode
     (and best_model.zip saved by it) sees the model before its last gradient step (README, "Run folders")."""
     from sb3_mtte.common import evaluation
     from sb3_mtte.envs import make_mt_env
-    from sb3_mtte.experiments.callbacks import ZooEvalCallback
+    from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback
 
     seen = []
 
@@ -311,7 +311,7 @@ def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeyp
     """A trial's value is the mean success over tasks of Meta-World's protocol (here a stand-in evaluation that
     scores 0.625 with the run's episodes per task), not rl-zoo's mean return."""
     from sb3_mtte.common.evaluation import SuccessResult
-    from sb3_mtte.experiments import callbacks
+    from sb3_mtte.experiments.zoo import training_callbacks as callbacks
 
     calls = []
 

@@ -1,4 +1,4 @@
-"""Tests of the rl-zoo launcher's enjoy and record_video (sb3_mtte.zoo): per-task success, one video per task, and
+"""Tests of the rl-zoo launcher's enjoy and record_video: per-task success, one video per task, and
 one line naming the fix for a missing run, model or bad option."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from conftest import ENV, tiny_train
 
-from sb3_mtte.zoo import main
+from sb3_mtte.experiments.cli import main
 
 
 # ================================================================================================ enjoy, video
@@ -74,7 +74,7 @@ def test_no_run_at_all_gets_its_message_alone(tmp_path, capsys, command):
 
 
 def test_every_record_video_option_is_described():
-    from sb3_mtte.experiments.playback import _record_video_parser
+    from sb3_mtte.experiments.playback.zoo_playback import _record_video_parser
 
     undescribed = [action.option_strings for action in _record_video_parser()._actions if not action.help]
     assert undescribed == []
@@ -171,7 +171,7 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
     from argparse import Namespace
 
     from sb3_mtte.envs import make_mt_env
-    from sb3_mtte.experiments.video import all_task_frames
+    from sb3_mtte.experiments.playback.video import all_task_frames
 
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))
     tasks = ["door-open-v3", "drawer-close-v3"]
@@ -197,7 +197,7 @@ def test_record_video_draws_each_task_in_its_own_gl_context(monkeypatch):
 
 def test_a_video_is_written_under_a_temporary_name_and_renamed_when_complete(tmp_path):
     """A video stopped midway leaves nothing under its name (and no partial file); a complete one is renamed."""
-    from sb3_mtte.experiments.video import write_video
+    from sb3_mtte.experiments.playback.video import write_video
 
     def frames(n: int, fail: bool):
         for _ in range(n):

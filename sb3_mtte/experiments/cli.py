@@ -1,7 +1,17 @@
-"""Command line: ``sb3-mtte train|enjoy|record_video|evaluate|record|plot|compare|sweep`` (and ``python -m
-sb3_mtte.zoo``).
+"""Command line: ``sb3-mtte <command>``, or ``python -m sb3_mtte <command>``.
 
-Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
+Commands::
+
+    train         train with rl-zoo3, one sub-env per task (every rl-zoo flag works as usual)
+    enjoy         run a trained model and print every finished episode
+    record_video  write one video per task of a trained model
+    evaluate      per-task success of a saved model, with Meta-World's protocol
+    plot          figures and Table 1 from records or run folders
+    compare       two algorithms compared as fixed before the runs
+    record        one small JSON record per finished run
+    sweep         a grid of training runs on Ray Tune
+
+Usage::
 
     sb3-mtte train --algo mtsacte --env MT10 [-conf my.yml] [rl-zoo flags]
     sb3-mtte train --algo mtsacte --env MT10 --resume      # latest run of mtsacte/MT10 in -f
@@ -14,56 +24,128 @@ Usage (every rl-zoo ``train`` / ``enjoy`` flag works as usual)::
     sb3-mtte compare docs/records --benchmark MT10-100k    # two algorithms, as fixed before the runs
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
-``python -m sb3_mtte.zoo <command>`` takes the same eight commands; ``python -m sb3_mtte.evaluate``,
-``python -m sb3_mtte.record``, ``python -m sb3_mtte.plot``, ``python -m sb3_mtte.compare`` and
-``python -m sb3_mtte.sweep`` are the same commands.
+``sb3-mtte <command> --help`` describes a command's options.
 
 What ``train`` adds to rl-zoo3: the package's zoo keys (:mod:`~sb3_mtte.experiments.variants`) in ``rl_zoo3.ALGOS``
-with their hyperparameters (:mod:`~sb3_mtte.experiments.configs`); the benchmarks' env ids, one sub-env per task
+with their hyperparameters (:mod:`~sb3_mtte.experiments.zoo.configs`); the benchmarks' env ids, one sub-env per task
 (:mod:`~sb3_mtte.experiments.env_ids`); Meta-World's success protocol for evaluation (``--eval-freq`` in total env
 steps, ``--eval-episodes`` per task, ``evaluations.npz`` and ``best_model.zip``); a run folder with
 ``progress.csv``, tensorboard events, ``negative_transfer.jsonl`` (MTSACTE) and ``run_info.json``
 (:mod:`~sb3_mtte.experiments.run_info`); checkpoints (``--save-freq``) that ``--resume`` continues exactly
-(:mod:`~sb3_mtte.experiments.checkpoints`). ``enjoy`` prints every finished episode; ``record_video`` writes one
-video per task (``--tile``: also all tasks side by side).
+(:mod:`~sb3_mtte.experiments.zoo.run_checkpoints`). ``enjoy`` prints every finished episode; ``record_video``
+writes one video per task (``--tile``: also all tasks side by side).
 """
 
 from __future__ import annotations
 
+import contextvars
+import difflib
+import importlib
+import os
 import re
 import sys
 import textwrap
 import warnings
 from collections.abc import Callable, Sequence
+from pathlib import Path
 from typing import Any
 
-import rl_zoo3.enjoy
+from sb3_mtte.experiments.extras import require_extra
 
-from sb3_mtte.common.utils import nearest_names
-from sb3_mtte.experiments import closed_pipe_exit, command_prog, compare, evaluate, plot, records, sweep
-from sb3_mtte.experiments.env_ids import register_standard_env_ids
-from sb3_mtte.experiments.launcher import train
-from sb3_mtte.experiments.playback import enjoy, record_video
-from sb3_mtte.experiments.zoo_parsers import ENJOY_DESCRIPTION, zoo_parser
+CONSOLE_SCRIPT = "sb3-mtte"
+MODULE_FORM = "python -m sb3_mtte"
+
+COMMAND_TARGETS: dict[str, str] = {
+    "train": "sb3_mtte.experiments.zoo.launcher:train",
+    "enjoy": "sb3_mtte.experiments.playback.zoo_playback:enjoy",
+    "record_video": "sb3_mtte.experiments.playback.zoo_playback:record_video",
+    "evaluate": "sb3_mtte.experiments.playback.evaluate_model:main",
+    "plot": "sb3_mtte.experiments.results.plot:main",
+    "compare": "sb3_mtte.experiments.results.compare:main",
+    "record": "sb3_mtte.experiments.results.records:main",
+    "sweep": "sb3_mtte.experiments.zoo.sweep:main",
+}
+"""Command -> ``module:function`` that runs it on the command's arguments."""
+
+_CALLED_AS: contextvars.ContextVar[str | None] = contextvars.ContextVar("sb3_mtte_called_as", default=None)
 
 
-def enjoy_command(argv: Sequence[str]) -> Any:
-    """``enjoy``, whose rl-zoo parser shows what it does and the package's zoo keys."""
-    with zoo_parser(rl_zoo3.enjoy, ENJOY_DESCRIPTION, prog=command_prog("enjoy", "sb3_mtte.zoo enjoy")):
-        return enjoy(argv)
+def program_name() -> str:
+    """How the user called the package: ``python -m sb3_mtte`` when the process runs its ``__main__``, else
+    ``sb3-mtte`` (the console script, and any call from Python)."""
+    called_as = _CALLED_AS.get()
+    if called_as is not None:
+        return called_as
+    argv0 = Path(sys.argv[0]) if sys.argv and sys.argv[0] else Path()
+    return MODULE_FORM if (argv0.name, argv0.parent.name) == ("__main__.py", "sb3_mtte") else CONSOLE_SCRIPT
+
+
+def command_prog(command: str) -> str:
+    """How the user called ``command``, for usage lines and errors: ``sb3-mtte <command>`` or
+    ``python -m sb3_mtte <command>``."""
+    return f"{program_name()} {command}"
+
+
+def closed_pipe_exit(main: Callable[[], Any]) -> Any:
+    """Run ``main``; output cut short by a closed pipe (``... --help | head``) ends the command quietly, as a shell
+    command does, with no traceback (Python's recipe: stdout to devnull, exit status 1)."""
+    try:
+        result = main()
+        sys.stdout.flush()
+        return result
+    except BrokenPipeError:
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        raise SystemExit(1) from None
+
+
+def device_error(flag: str, device: str | None) -> str | None:
+    """Why ``device`` is no torch device (``--device gpu``), or None: SB3's ``auto`` and any name torch takes."""
+    import torch as th
+
+    if device in (None, "auto"):
+        return None
+    try:
+        th.device(device)
+    except (RuntimeError, TypeError):
+        return f"{flag} {device}: not a torch device; give auto, cpu, cuda or cuda:<index>."
+    return None
+
+
+def output_folder_error(flag: str, path: str | Path) -> str | None:
+    """Why ``path`` cannot be the output folder of ``flag`` (an existing file), or None."""
+    return f"{flag} {path} is a file: give a folder." if Path(path).is_file() else None
+
+
+def output_file_error(flag: str, path: str | Path) -> str | None:
+    """Why ``path`` cannot be the output file of ``flag`` (an existing folder, or a name ending in a slash), or None."""
+    if Path(path).is_dir() or str(path).endswith(("/", "\\")):
+        return f"{flag} {path} is a folder: give a file path (e.g. {Path(path) / 'success.json'})."
+    return None
+
+
+class LazyCommand:
+    """A command whose module is imported only when it runs, once its extras are found.
+
+    :param name: the command (a key of :data:`COMMAND_TARGETS`).
+    :param target: ``module:function`` that runs it.
+    """
+
+    def __init__(self, name: str, target: str) -> None:
+        self.name, self.target = name, target
+
+    def __call__(self, argv: Sequence[str]) -> Any:
+        require_extra(self.name, command_prog(self.name))
+        module, function = self.target.split(":")
+        return getattr(importlib.import_module(module), function)(argv)
+
+    def __repr__(self) -> str:
+        return f"LazyCommand({self.name!r}, {self.target!r})"
 
 
 COMMANDS: dict[str, Callable[[Sequence[str]], Any]] = {
-    "train": train,
-    "enjoy": enjoy_command,
-    "record_video": record_video,
-    "evaluate": evaluate.main,
-    "plot": plot.main,
-    "compare": compare.main,
-    "record": records.main,
-    "sweep": sweep.main,
+    name: LazyCommand(name, target) for name, target in COMMAND_TARGETS.items()
 }
-"""Every command of ``sb3-mtte`` and of ``python -m sb3_mtte.zoo``."""
+"""Every command of ``sb3-mtte`` and of ``python -m sb3_mtte``."""
 
 
 def plain_text(doc: str) -> str:
@@ -79,7 +161,7 @@ def plain_text(doc: str) -> str:
 
 def unknown_command_message(prog: str, command: str, commands: Sequence[str]) -> str:
     """One line naming an unknown command, the nearest known one and every command."""
-    close = nearest_names(command, commands)
+    close = difflib.get_close_matches(command, list(commands), n=1, cutoff=0.6)
     hint = f" (did you mean {close[0]!r}?)" if close else ""
     return f"{prog}: unknown command {command!r}{hint}; commands: {', '.join(commands)} ({prog} --help for more)"
 
@@ -88,7 +170,11 @@ def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, 
     """Run ``argv[0]`` of ``commands`` on the rest of ``argv`` (the process's arguments when None); output cut short
     by a closed pipe ends it quietly."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    return closed_pipe_exit(lambda: _dispatch(commands, prog, argv))
+    token = _CALLED_AS.set(prog)
+    try:
+        return closed_pipe_exit(lambda: _dispatch(commands, prog, argv))
+    finally:
+        _CALLED_AS.reset(token)
 
 
 def _dispatch(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: list[str]) -> Any:
@@ -98,27 +184,43 @@ def _dispatch(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, ar
     if not argv or argv[0] not in commands:
         print(f"usage: {prog} {{{','.join(commands)}}} [options]\n\n{plain_text(__doc__ or '')}")
         raise SystemExit(0 if argv else 2)
+    from sb3_mtte.experiments.env_ids import register_standard_env_ids  # loads torch: after the process settings
+
     register_standard_env_ids()
     with warnings.catch_warnings():
         warnings.filterwarnings("ignore", message=".*render_mode.*")
         return commands[argv[0]](argv[1:])
 
 
-def main(argv: Sequence[str] | None = None) -> Any:
-    """``sb3-mtte {train,enjoy,record_video,evaluate,plot,sweep} ...`` (the console script)."""
-    return run_command(COMMANDS, "sb3-mtte", argv)
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> Any:
+    """``sb3-mtte <command> ...``: run one command of :data:`COMMANDS`.
+
+    :param argv: the command and its arguments (default: the process's).
+    :param prog: how the package was called, in usage lines and errors (default: :func:`program_name`).
+    :return: what the command returns (written paths, results), for callers in Python.
+    """
+    return run_command(COMMANDS, prog or program_name(), argv)
 
 
 def console_main() -> None:
-    """The ``sb3-mtte`` console script: :func:`main` with exit status 0 on success (the script's wrapper exits with
-    the returned value, and a command's return value is for callers in Python)."""
+    """The ``sb3-mtte`` console script and ``python -m sb3_mtte``: the package's process settings, then
+    :func:`main`, with exit status 0 on success (the script's wrapper exits with the returned value, and a
+    command's return value is for callers in Python)."""
+    from sb3_mtte.process import tune_process
+
+    tune_process(spin_count="torch" not in sys.modules)  # a fresh command process: torch is not loaded yet
     main()
 
 
-def zoo_main(argv: Sequence[str] | None = None) -> Any:
-    """``python -m sb3_mtte.zoo {train,enjoy,record_video,evaluate,plot,record,sweep} ...``: the commands of
-    :func:`main`."""
-    return run_command(COMMANDS, "python -m sb3_mtte.zoo", argv)
-
-
-__all__ = ["COMMANDS", "console_main", "enjoy_command", "main", "zoo_main"]
+__all__ = [
+    "COMMANDS",
+    "COMMAND_TARGETS",
+    "closed_pipe_exit",
+    "command_prog",
+    "console_main",
+    "device_error",
+    "main",
+    "output_file_error",
+    "output_folder_error",
+    "program_name",
+]

@@ -21,7 +21,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
 from sb3_mtte.envs import TOY_BENCHMARKS, make_env_fns
 from sb3_mtte.envs.metaworld_envs import is_task_list, metaworld_task_names
 from sb3_mtte.envs.toy import parse_toy_name
-from sb3_mtte.experiments.episode_reporter import EpisodeReporter
 
 BUDGET_SUFFIXES = ("smoke", "cpu", "100k")
 """Env-id suffixes that select another hyperparameter entry (``MT10-smoke``) for the same benchmark."""
@@ -95,7 +94,7 @@ def make_task_env(benchmark: str, task_index: int | None = None, seed: int | Non
         if context is None:
             raise gym.error.Error(
                 f"{benchmark!r} is a multi-task benchmark with one sub-env per task: build it with "
-                "sb3_mtte.envs.make_mt_env, with the sb3_mtte.zoo launcher, or pass task_index=i."
+                "sb3_mtte.envs.make_mt_env, with sb3-mtte train, or pass task_index=i."
             )
         task_index = context[0]
     if seed is None:
@@ -174,14 +173,18 @@ class MultiTaskVecEnvFactory:
     :param n_tasks: number of tasks N; the zoo must ask for N sub-envs.
     :param seed: benchmark seed handed to every sub-env (goal variations).
     :param vec_env_cls: the VecEnv class that runs the sub-envs (rl-zoo's ``--vec-env`` choice).
-    :param report_episodes: wrap the env in :class:`EpisodeReporter` (``enjoy``).
+    :param wrapper: what wraps the VecEnv built, e.g. ``enjoy``'s episode report; None: nothing.
     """
 
     def __init__(
-        self, n_tasks: int, seed: int = 0, vec_env_cls: type[VecEnv] = DummyVecEnv, report_episodes: bool = False
+        self,
+        n_tasks: int,
+        seed: int = 0,
+        vec_env_cls: type[VecEnv] = DummyVecEnv,
+        wrapper: Callable[[VecEnv], VecEnv] | None = None,
     ) -> None:
         self.n_tasks, self.seed, self.vec_env_cls = n_tasks, int(seed), vec_env_cls
-        self.report_episodes = report_episodes
+        self.wrapper = wrapper
 
     def __call__(self, env_fns: Sequence[Callable[[], gym.Env]], **vec_env_kwargs: Any) -> VecEnv:
         if len(env_fns) != self.n_tasks:
@@ -191,4 +194,4 @@ class MultiTaskVecEnvFactory:
             )
         fns = [_TaskEnvFn(fn, i, self.seed) for i, fn in enumerate(env_fns)]
         env = self.vec_env_cls(fns, **vec_env_kwargs)  # type: ignore[arg-type]
-        return EpisodeReporter(env) if self.report_episodes else env
+        return env if self.wrapper is None else self.wrapper(env)

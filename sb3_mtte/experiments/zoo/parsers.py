@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import argparse
 import functools
-from types import ModuleType, SimpleNamespace
+from collections.abc import Callable
 from typing import Any
-from unittest import mock
 
 from rl_zoo3.utils import StoreDict
 
@@ -95,12 +94,18 @@ class ZooParser(argparse.ArgumentParser):
         return super().add_argument(*names, **kwargs)
 
 
-def zoo_parser(module: ModuleType, description: str, launcher_options: bool = False, prog: str | None = None) -> Any:
-    """A context manager making the ``argparse.ArgumentParser()`` of rl-zoo's ``module`` (``rl_zoo3.train`` or
-    ``rl_zoo3.enjoy``, which build their parser inside the command) a :class:`ZooParser` named ``prog`` (how the
-    user called the command)."""
-    parser = functools.partial(ZooParser, prog=prog, description=description, launcher_options=launcher_options)
-    return mock.patch.object(module, "argparse", SimpleNamespace(ArgumentParser=parser))
+def zoo_parser(description: str, launcher_options: bool = False, prog: str | None = None) -> Callable[..., ZooParser]:
+    """What rl-zoo's ``train()`` or ``enjoy()`` builds its parser with: a :class:`ZooParser` named ``prog`` (how
+    the user called the command), described by ``description``
+    (:func:`~sb3_mtte.experiments.zoo.adapter.run_train` puts it in place)."""
+    return functools.partial(ZooParser, prog=prog, description=description, launcher_options=launcher_options)
 
 
-__all__ = ["ENJOY_DESCRIPTION", "TRAIN_DESCRIPTION", "add_launcher_options", "zoo_parser"]
+__all__ = [
+    "ENJOY_DESCRIPTION",
+    "TRAIN_DESCRIPTION",
+    "CheckedStoreDict",
+    "ZooParser",
+    "add_launcher_options",
+    "zoo_parser",
+]

@@ -15,12 +15,8 @@ from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
-from unittest import mock
 
-import optuna
-import rl_zoo3.exp_manager
 import yaml
-from rl_zoo3.exp_manager import ExperimentManager
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import ProgressBarCallback
 from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
@@ -29,11 +25,16 @@ from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
 from sb3_mtte.envs import check_env_kwargs, reward_function_version
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.callbacks import MultiTaskCheckpointCallback, SuccessTrialEvalCallback, ZooEvalCallback
-from sb3_mtte.experiments.checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
-from sb3_mtte.experiments.configs import LAUNCHER_YAML_KEYS, family_config_path, unknown_key_message
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
-from sb3_mtte.experiments.run_logs import make_run_logger, set_aside_monitor_files, trim_jsonl
+from sb3_mtte.experiments.zoo.adapter import ZooExperimentManager
+from sb3_mtte.experiments.zoo.configs import LAUNCHER_YAML_KEYS, family_config_path, unknown_key_message
+from sb3_mtte.experiments.zoo.run_checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
+from sb3_mtte.experiments.zoo.run_logs import make_run_logger, set_aside_monitor_files, trim_jsonl
+from sb3_mtte.experiments.zoo.training_callbacks import (
+    MultiTaskCheckpointCallback,
+    SuccessTrialEvalCallback,
+    ZooEvalCallback,
+)
 from sb3_mtte.mtsacte.callbacks import NT_LOG_FILE
 
 
@@ -48,13 +49,19 @@ class LaunchOptions:
     align_checkpoints: bool = True
     tensorboard: bool = True
     hyperparams: dict[str, dict[str, Any]] | None = None
-    """Every env entry of the variant's hyperparameters (:mod:`~sb3_mtte.experiments.configs`); None: rl-zoo reads
+    """Every env entry of the variant's hyperparameters (:mod:`~sb3_mtte.experiments.zoo.configs`); None: rl-zoo reads
     its ``-conf`` file."""
 
 
-class MultiTaskExperimentManager(ExperimentManager):
+class MultiTaskExperimentManager(ZooExperimentManager):
     """rl-zoo's ExperimentManager with one sub-env per task, multi-task evaluation, resumable checkpoints
-    and run metadata (see the module docstring)."""
+    and run metadata (see the module docstring).
+
+    It overrides public methods of rl-zoo's only; its private steps go through
+    :class:`~sb3_mtte.experiments.zoo.adapter.ZooExperimentManager`.
+    """
+
+    trial_eval_callback_class = SuccessTrialEvalCallback  # an optuna trial is scored by success, not return
 
     def __init__(self, args: argparse.Namespace, algo: str, env_id: str, *pos: Any, **kwargs: Any) -> None:
         self.launch: LaunchOptions = kwargs.pop("launch", None) or LaunchOptions()
@@ -108,8 +115,8 @@ class MultiTaskExperimentManager(ExperimentManager):
         if "env_kwargs" not in given:
             self.env_kwargs = dict(saved.get("env_kwargs") or {})
         if "eval_env_kwargs" not in given:
-            self._eval_env_kwargs_args = saved.get("eval_env_kwargs")
-            self.eval_env_kwargs = dict(self._eval_env_kwargs_args or self.env_kwargs)
+            self.eval_env_kwargs_given = saved.get("eval_env_kwargs")
+            self.eval_env_kwargs = dict(self.eval_env_kwargs_given or self.env_kwargs)
         if "vec_env" not in given and saved.get("vec_env") == "subproc":
             self.vec_env_class.vec_env_cls = SubprocVecEnv
         if "log_interval" not in given and "log_interval" in saved:
@@ -180,7 +187,7 @@ class MultiTaskExperimentManager(ExperimentManager):
             hyperparams.update(self.custom_hyperparams)
         if "env_kwargs" in hyperparams and self.env_kwargs:
             hyperparams["env_kwargs"] = self.env_kwargs
-            if self._eval_env_kwargs_args is None:
+            if self.eval_env_kwargs_given is None:
                 self.eval_env_kwargs = hyperparams["env_kwargs"]
         return hyperparams
 
@@ -268,11 +275,11 @@ class MultiTaskExperimentManager(ExperimentManager):
             assert result is not None
             run_info.append_resume(run_dir, checkpoint=None, timesteps=0)
             return result
-        hyperparams, self.env_wrapper, self.callbacks, self.vec_env_wrapper = self._preprocess_hyperparams(unprocessed)
+        hyperparams, self.env_wrapper, self.callbacks, self.vec_env_wrapper = self.preprocess_hyperparams(unprocessed)
         self.create_log_folder()
         self.create_callbacks()
         env = self.create_envs(self.n_tasks, no_log=False)
-        hyperparams = self._preprocess_action_noise(hyperparams, saved, env)
+        hyperparams = self.preprocess_action_noise(hyperparams, saved, env)
         overrides = {k: v for k, v in hyperparams.items() if k in (self.custom_hyperparams or {})}
         overrides.pop("policy", None)
         overrides.pop("policy_kwargs", None)
@@ -289,9 +296,8 @@ class MultiTaskExperimentManager(ExperimentManager):
         )
         return model, saved
 
-    def _save_config(self, saved_hyperparams: dict[str, Any]) -> None:
-        if self.launch.resume_dir is None:  # a resumed run keeps its own config.yml, args.yml and command
-            super()._save_config(saved_hyperparams)
+    def saves_config(self) -> bool:
+        return self.launch.resume_dir is None  # a resumed run keeps its own config.yml, args.yml and command
 
     def _final_checkpoint(self, run_dir: Path) -> Checkpoint | None:
         """The final model and replay buffer of a run that finished (``--save-replay-buffer``), if any."""
@@ -331,11 +337,6 @@ class MultiTaskExperimentManager(ExperimentManager):
         run_info.write_run_info(self.save_path, info)
 
     # ---- training
-    def objective(self, trial: optuna.Trial) -> float:
-        """rl-zoo's optuna trial (``-optimize``), scored by the mean success over tasks, not the mean return."""
-        with mock.patch.object(rl_zoo3.exp_manager, "TrialEvalCallback", SuccessTrialEvalCallback):
-            return super().objective(trial)
-
     def learn(self, model: BaseAlgorithm) -> None:
         step = self.resume_step
         tb_dir = None

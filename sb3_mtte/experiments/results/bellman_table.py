@@ -8,7 +8,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import Run, table_order, task_scalar
+from sb3_mtte.experiments.results.runs import Run, table_order, task_scalar
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 BELLMAN_NOTE = (

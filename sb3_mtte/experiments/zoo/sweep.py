@@ -2,13 +2,13 @@
 
 Usage::
 
-    python -m sb3_mtte.sweep --algos mtsacte mtsac_mt mtsac_mh --envs MT10 MT20 --seeds 0 1 2 3 4 \\
+    sb3-mtte sweep --algos mtsacte mtsac_mt mtsac_mh --envs MT10 MT20 --seeds 0 1 2 3 4 \\
         --budget smoke --out runs/ [--address ray://HEAD:10001] [--cpus-per-trial 2] [--gpus-per-trial 0.5] \\
         [--max-concurrent 8] [--retries 2] [--resume] [-- EXTRA ZOO TRAIN FLAGS]
 
-Every trial runs ``python -m sb3_mtte.zoo train --algo A --env E --seed S -f OUT --exp-id K`` in a Ray worker
+Every trial runs ``sb3-mtte train --algo A --env E --seed S -f OUT --exp-id K`` in a Ray worker
 (``ray.init()`` starts a local Ray by default; ``--address`` joins a cluster, whose nodes need this package and a
-file system shared at OUT). Results land in the zoo layout that ``python -m sb3_mtte.plot OUT`` reads:
+file system shared at OUT). Results land in the zoo layout that ``sb3-mtte plot OUT`` reads:
 ``OUT/<algo>/<env>_<K>/``; ``--budget smoke`` trains the ``<env>-smoke`` entry of each hyperparameter file
 (``OUT/<algo>/<env>-smoke_<K>/``). The trial list, with each trial's run folder, is kept in ``OUT/sweep.json``;
 ``--resume`` re-runs the same trials: finished ones are skipped and the others continue from their last
@@ -31,10 +31,12 @@ import numpy as np
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
-from sb3_mtte.experiments import command_prog, launcher, output_folder_error, run_info
-from sb3_mtte.experiments.configs import missing_entries_message
+from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.cli import command_prog, output_folder_error
 from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
+from sb3_mtte.experiments.zoo import launcher
+from sb3_mtte.experiments.zoo.configs import missing_entries_message
 
 SWEEP_FILE = "sweep.json"
 BUDGETS = ("full", *BUDGET_SUFFIXES)
@@ -47,7 +49,7 @@ def import_ray() -> Any:
         from ray import tune  # noqa: F401
     except ImportError as error:  # pragma: no cover - depends on the environment
         raise ImportError(
-            'sb3_mtte.sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
+            f'{command_prog("sweep")} needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
         ) from error
     return ray
 
@@ -221,13 +223,13 @@ def _print_summary(trials: list[dict[str, Any]]) -> None:
 
 
 def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
-    """``python -m sb3_mtte.sweep --algos ... --envs ... --seeds ... [options] [-- zoo train flags]``"""
+    """``sb3-mtte sweep --algos ... --envs ... --seeds ... [options] [-- zoo train flags]``"""
     argv = list(sys.argv[1:] if argv is None else argv)
     extra: list[str] = []
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    parser = argparse.ArgumentParser(prog=command_prog("sweep", "sb3_mtte.sweep"), description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(prog=command_prog("sweep"), description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
     parser.add_argument(
         "--envs",

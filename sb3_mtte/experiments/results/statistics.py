@@ -19,7 +19,7 @@ import numpy as np
 from rliable import library as rly
 from rliable import metrics
 
-from sb3_mtte.experiments.runs import Run, success_curve
+from sb3_mtte.experiments.results.runs import Run, success_curve
 
 DEFAULT_REPS = 2000
 DEFAULT_SEED = 0

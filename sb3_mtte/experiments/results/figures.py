@@ -1,6 +1,6 @@
 """Figures of the paper that need a run folder's logs (``<b>`` = benchmark, ``<a>`` = algorithm label), and the
 helpers every figure shares. The success figures, drawn from records as well, are in
-:mod:`sb3_mtte.experiments.summary_figures`.
+:mod:`sb3_mtte.experiments.results.summary_figures`.
 
 - ``bellman_<b>_<a>.png`` (Fig. 3): per task, soft Bellman error (critic loss) and success;
 - ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm, with the
@@ -27,7 +27,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import (
+from sb3_mtte.experiments.results.runs import (
     Run,
     Series,
     episode_length,
@@ -40,7 +40,7 @@ from sb3_mtte.experiments.runs import (
     task_scalar,
     train_frequency,
 )
-from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED
+from sb3_mtte.experiments.results.statistics import DEFAULT_REPS, DEFAULT_SEED
 from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 

@@ -4,20 +4,17 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import rl_zoo3.enjoy
 import yaml
 from huggingface_sb3 import EnvironmentName
-from rl_zoo3.exp_manager import ExperimentManager
 from rl_zoo3.utils import get_model_path
 
 from sb3_mtte.envs import check_env_kwargs, make_env_fns, make_mt_env
-from sb3_mtte.experiments import command_prog, device_error, output_folder_error, run_info
-from sb3_mtte.experiments.checkpoints import latest_run_with_model, load_model
+from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.cli import command_prog, device_error, output_folder_error
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
     benchmark_help,
@@ -25,9 +22,12 @@ from sb3_mtte.experiments.env_ids import (
     register_env_id,
     split_env_id,
 )
-from sb3_mtte.experiments.launcher import flag_value, has_flag, patched, register_algos
-from sb3_mtte.experiments.zoo_parsers import CheckedStoreDict
-from sb3_mtte.experiments.video import record_task_videos, record_tiled_video
+from sb3_mtte.experiments.playback.episode_reporter import EpisodeReporter
+from sb3_mtte.experiments.playback.video import record_task_videos, record_tiled_video
+from sb3_mtte.experiments.zoo.adapter import run_enjoy
+from sb3_mtte.experiments.zoo.launcher import flag_value, has_flag, register_algos
+from sb3_mtte.experiments.zoo.parsers import ENJOY_DESCRIPTION, CheckedStoreDict, zoo_parser
+from sb3_mtte.experiments.zoo.run_checkpoints import latest_run_with_model, load_model
 
 
 def _latest_run_id(args: argparse.Namespace) -> int:
@@ -114,21 +114,18 @@ def enjoy(argv: Sequence[str]) -> None:
     _, _, log_path = locate_model(args)
     argv += ["--exp-id", str(args.exp_id)]  # resolved, so that rl-zoo's enjoy does not report it a second time
     info = run_info.read_run_info(log_path) or {}
-    factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), report_episodes=True)
+    factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), wrapper=EpisodeReporter)
     _run_zoo_enjoy(argv, factory)
 
 
 def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
-    """Run rl-zoo's ``enjoy()``, which parses ``sys.argv`` and builds its envs with ``default_vec_env_cls``."""
-    with (
-        patched(sys, "argv", [f"{sys.argv[0]} enjoy", *argv]),
-        patched(ExperimentManager, "default_vec_env_cls", factory),
-    ):
-        rl_zoo3.enjoy.enjoy()
+    """Run rl-zoo's ``enjoy()`` with its envs built by ``factory``, and a parser that shows what it does and the
+    package's zoo keys."""
+    run_enjoy(argv, factory, zoo_parser(ENJOY_DESCRIPTION, prog=command_prog("enjoy")))
 
 
 def _record_video_parser() -> argparse.ArgumentParser:
-    prog = command_prog("record_video", "sb3_mtte.zoo record_video")
+    prog = command_prog("record_video")
     parser = argparse.ArgumentParser(prog=prog, parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
@@ -149,7 +146,7 @@ def _record_video_parser() -> argparse.ArgumentParser:
 
 def record_video(argv: Sequence[str]) -> list[Path]:
     """``record_video``: one video per task (and optionally a tiled one) of a trained model, each task filmed and
-    written before the next (:mod:`sb3_mtte.experiments.video`).
+    written before the next (:mod:`sb3_mtte.experiments.playback.video`).
 
     Meta-World renders with MuJoCo: headless machines need ``MUJOCO_GL=egl`` (set by default when there is no
     display) or ``osmesa``.

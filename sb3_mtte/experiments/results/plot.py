@@ -15,7 +15,7 @@ seeds.
 Written to ``--out``, per benchmark ``<b>``:
 
 - ``success_<b>.png``, ``per_task_<b>.png`` and ``profile_<b>.png``, every algorithm in each
-  (:mod:`sb3_mtte.experiments.summary_figures`: means over seeds with 95% stratified-bootstrap bands);
+  (:mod:`sb3_mtte.experiments.results.summary_figures`: means over seeds with 95% stratified-bootstrap bands);
 - ``table1_<b>.md`` (also printed): per algorithm n (seeds), mean and IQM of the final success over runs x tasks and
   the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
   (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
@@ -23,16 +23,16 @@ Written to ``--out``, per benchmark ``<b>``:
   budget (crashed, killed, still training) is left out of every figure and table, and named in one line on stderr
   (``--include-unfinished`` draws it and counts its last evaluation);
 - ``compare_<b>.md``, for a benchmark with a comparison fixed before its runs (MT10-100k: Ours against SAC-MT,
-  :mod:`sb3_mtte.experiments.compare`): the comparison in full; its summary goes under Table 1;
+  :mod:`sb3_mtte.experiments.results.compare`): the comparison in full; its summary goes under Table 1;
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
   its package commit;
 - ``bellman_<b>.md``, for runs that log the per-task critic loss: every run, seed by seed: between consecutive
   evaluations the task with the largest soft Bellman error and its mean, the peak, and the share of samples the
-  clip of Eq. 16 dropped (:mod:`sb3_mtte.experiments.bellman_table`);
+  clip of Eq. 16 dropped (:mod:`sb3_mtte.experiments.results.bellman_table`);
 - ``results_<b>.json`` (or ``<DIR>/<b>.json`` with ``--results-dir DIR``): one entry per run with a final evaluation;
-- the figures of :mod:`sb3_mtte.experiments.figures`: Bellman error (from run folders and from records that keep the
-  training losses) and, from run folders only (they need the logs that records leave out), train frequency, mu and
-  w, and transfer-matrix heatmaps at ``--matrix-times``, each titled with the time of the recomputation it draws,
+- the figures of :mod:`sb3_mtte.experiments.results.figures`: Bellman error (from run folders and from records that
+  keep the training losses) and, from run folders only (they need the logs that records leave out), train frequency,
+  mu and w, and transfer-matrix heatmaps at ``--matrix-times``, each titled with the time of the recomputation it draws,
   the nearest; a time past the log is skipped with a line naming the run whose log stops first.
 
 Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
@@ -49,15 +49,21 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments import command_prog, output_folder_error
-from sb3_mtte.experiments.bellman_table import bellman_table
-from sb3_mtte.experiments.compare import PREREGISTERED, comparison_report, comparison_summary
-from sb3_mtte.experiments.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
-from sb3_mtte.experiments.records import load_runs
-from sb3_mtte.experiments.results import BenchmarkStatistics, benchmark_statistics, results_records, runs_table, table1
-from sb3_mtte.experiments.runs import Run, group_runs
-from sb3_mtte.experiments.statistics import DEFAULT_REPS, DEFAULT_SEED, run_budget, unfinished
-from sb3_mtte.experiments.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
+from sb3_mtte.experiments.cli import command_prog, output_folder_error
+from sb3_mtte.experiments.results.bellman_table import bellman_table
+from sb3_mtte.experiments.results.compare import PREREGISTERED, comparison_report, comparison_summary
+from sb3_mtte.experiments.results.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
+from sb3_mtte.experiments.results.records import load_runs
+from sb3_mtte.experiments.results.runs import Run, group_runs
+from sb3_mtte.experiments.results.statistics import DEFAULT_REPS, DEFAULT_SEED, run_budget, unfinished
+from sb3_mtte.experiments.results.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
+from sb3_mtte.experiments.results.tables import (
+    BenchmarkStatistics,
+    benchmark_statistics,
+    results_records,
+    runs_table,
+    table1,
+)
 
 
 class PlotInputError(ValueError):
@@ -165,8 +171,8 @@ def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list
 
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
-    """``python -m sb3_mtte.plot SOURCE [SOURCE ...] [--out DIR] ...``"""
-    parser = argparse.ArgumentParser(prog=command_prog("plot", "sb3_mtte.plot"), description=__doc__.split("\n\n")[0])
+    """``sb3-mtte plot SOURCE [SOURCE ...] [--out DIR] ...``"""
+    parser = argparse.ArgumentParser(prog=command_prog("plot"), description=__doc__.split("\n\n")[0])
     parser.add_argument("sources", nargs="+", help="folders holding run folders (run_info.json) and/or records")
     parser.add_argument("--out", default=None, help="output folder (default: the first SOURCE, beside the runs)")
     parser.add_argument("--reps", type=int, default=DEFAULT_REPS, help=f"bootstrap resamples (default {DEFAULT_REPS})")

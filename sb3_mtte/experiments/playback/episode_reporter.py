@@ -1,7 +1,6 @@
 """The episode report of ``enjoy``: a VecEnv wrapper that prints every finished episode and the success rates.
 
-It imports stable-baselines3 alone (not rl-zoo3), as :mod:`~sb3_mtte.experiments.env_ids`, which wraps its envs in it,
-must: the device check (``benchmarks/bench_gpu.py``) imports ``env_ids`` on a machine without rl-zoo3.
+``enjoy`` hands it to :class:`~sb3_mtte.experiments.env_ids.MultiTaskVecEnvFactory` as the wrapper of its envs.
 """
 
 from __future__ import annotations

@@ -16,7 +16,13 @@ from stable_baselines3.common.vec_env import VecEnv
 from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.update_monitor import record_train_stats
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.checkpoints import Checkpoint, atomic_save, checkpoint_paths, find_checkpoints, restart_envs
+from sb3_mtte.experiments.zoo.run_checkpoints import (
+    Checkpoint,
+    atomic_save,
+    checkpoint_paths,
+    find_checkpoints,
+    restart_envs,
+)
 
 
 class MultiTaskCheckpointCallback(BaseCallback):

@@ -23,12 +23,12 @@ import numpy as np
 from scipy import stats
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments import command_prog, output_file_error
-from sb3_mtte.experiments.figures import safe_name
-from sb3_mtte.experiments.bellman_table import critic_losses, evaluation_steps, window_names, window_peaks
-from sb3_mtte.experiments.records import load_runs
-from sb3_mtte.experiments.runs import Run, group_runs, success_curve
-from sb3_mtte.experiments.statistics import (
+from sb3_mtte.experiments.cli import command_prog, output_file_error
+from sb3_mtte.experiments.results.bellman_table import critic_losses, evaluation_steps, window_names, window_peaks
+from sb3_mtte.experiments.results.figures import safe_name
+from sb3_mtte.experiments.results.records import load_runs
+from sb3_mtte.experiments.results.runs import Run, group_runs, success_curve
+from sb3_mtte.experiments.results.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
     Estimate,
@@ -334,7 +334,7 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
-        prog=command_prog("compare", "sb3_mtte.compare"),
+        prog=command_prog("compare"),
         description="Two algorithms of one benchmark compared as fixed before the runs: the difference of mean final "
         "success with a bootstrap interval and Welch's t, rliable's aggregates, and the runs whose soft Bellman "
         "error ran away (Fisher's exact test).",

@@ -9,8 +9,8 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.runs import Run, label_order, success_curve, table_order
-from sb3_mtte.experiments.statistics import (
+from sb3_mtte.experiments.results.runs import Run, label_order, success_curve, table_order
+from sb3_mtte.experiments.results.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
     Estimate,

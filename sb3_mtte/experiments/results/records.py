@@ -41,10 +41,11 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments import command_prog, output_folder_error
-from sb3_mtte.experiments.figures import safe_name
+from sb3_mtte.experiments.cli import command_prog, output_folder_error
+from sb3_mtte.experiments.results.figures import safe_name
+from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
+from sb3_mtte.experiments.results.runs import Run, Series, discover_runs, results_benchmark, task_scalar
 from sb3_mtte.experiments.run_info import read_json
-from sb3_mtte.experiments.runs import Run, Series, discover_runs, results_benchmark, task_scalar
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 RECORD_VERSION = 2
@@ -83,33 +84,6 @@ def _training(run: Run) -> dict[str, Any] | None:
             None if t not in at_steps else round(at_steps[t], 6) for t in training["env_steps"]
         ]
     return training
-
-
-def distance_from_uniform(weights: np.ndarray) -> np.ndarray:
-    """Total variation distance of each row of ``weights`` ``(..., tasks)`` from uniform weights: half the sum of
-    ``|w_i - 1/N|``."""
-    weights = np.asarray(weights, dtype=float)
-    return 0.5 * np.abs(weights - 1.0 / weights.shape[-1]).sum(axis=-1)
-
-
-def _off_diagonal(matrices: np.ndarray) -> np.ndarray:
-    """``(..., N, N)`` -> ``(..., N * (N - 1))``: the off-diagonal entries of each matrix."""
-    n = matrices.shape[-1]
-    return matrices[..., ~np.eye(n, dtype=bool)]
-
-
-def harmful_fraction(matrices: np.ndarray) -> np.ndarray:
-    """Per transfer matrix ``(..., N, N)`` (entry [k, i] = J_i(theta^k) - J_i(theta)): the share of its off-diagonal
-    entries below zero, the pairs Eq. 6 counts as harmful."""
-    return (_off_diagonal(np.asarray(matrices, dtype=float)) < 0).mean(axis=-1)
-
-
-def transfer_coupling(matrices: np.ndarray) -> np.ndarray:
-    """Per transfer matrix ``(..., N, N)``: mean |T[k, i]| over k != i divided by mean |T[k, k]| (0: a virtual step on
-    one task leaves the other tasks' objectives where they were)."""
-    matrices = np.asarray(matrices, dtype=float)
-    diagonal = np.abs(np.diagonal(matrices, axis1=-2, axis2=-1)).mean(axis=-1)
-    return np.abs(_off_diagonal(matrices)).mean(axis=-1) / diagonal
 
 
 def _representation(run: Run) -> dict[str, Any] | None:
@@ -173,8 +147,8 @@ def run_record(run: Run) -> dict[str, Any]:
 
 
 def record_path(record: dict[str, Any], out: Path) -> Path:
-    """``out/<benchmark>/<algo>_seed<k>.json``, the benchmark of :func:`~sb3_mtte.experiments.runs.results_benchmark`
-    (the env id on Meta-World's default rewards)."""
+    """``out/<benchmark>/<algo>_seed<k>.json``, the benchmark of
+    :func:`~sb3_mtte.experiments.results.runs.results_benchmark` (the env id on Meta-World's default rewards)."""
     bench = results_benchmark(str(record["env_id"]), record.get("reward_function_version"))
     return out / safe_name(bench) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
@@ -189,7 +163,7 @@ def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -
             model = run.path / str(run.info.get("final_model") or f"{run.benchmark}.zip")
             print(
                 f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation "
-                f"(success.json); evaluate it first: python -m sb3_mtte.evaluate {model} --episodes 50",
+                f"(success.json); evaluate it first: {command_prog('evaluate')} {model} --episodes 50",
                 file=sys.stderr,
             )
             continue
@@ -294,9 +268,7 @@ def load_runs(sources: Sequence[str | Path]) -> list[Run]:
 
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
-    parser = argparse.ArgumentParser(
-        prog=command_prog("record", "sb3_mtte.record"), description=__doc__.split("\n\n")[0]
-    )
+    parser = argparse.ArgumentParser(prog=command_prog("record"), description=__doc__.split("\n\n")[0])
     parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
     parser.add_argument(
         "--out",
@@ -318,7 +290,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         parser.exit(
             2,
             f"{parser.prog}: error: no run with a final evaluation (success.json) under {args.runs_dir}; evaluate "
-            "each run first: python -m sb3_mtte.evaluate <run folder>/<env id>.zip --episodes 50\n",
+            f"each run first: {command_prog('evaluate')} <run folder>/<env id>.zip --episodes 50\n",
         )
     return paths
 

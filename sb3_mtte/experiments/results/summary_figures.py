@@ -19,18 +19,18 @@ import numpy as np
 from matplotlib.axes import Axes
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.figures import (
+from sb3_mtte.experiments.results.figures import (
     PlotOptions,
     algorithm_styles,
-    point_marker,
     new_figure,
     panel_grid,
+    point_marker,
     safe_name,
     save_figure,
     wrapped_title,
 )
-from sb3_mtte.experiments.runs import Run, common_grid, label_order, smooth, success_curve
-from sb3_mtte.experiments.statistics import PROFILE_TAUS, curve_estimates, performance_profiles
+from sb3_mtte.experiments.results.runs import Run, common_grid, label_order, smooth, success_curve
+from sb3_mtte.experiments.results.statistics import PROFILE_TAUS, curve_estimates, performance_profiles
 from sb3_mtte.experiments.variants import ablation_labels
 
 BAND_NOTE = "mean over seeds, band: 95% stratified-bootstrap CI"
@@ -39,7 +39,7 @@ BAND_NOTE = "mean over seeds, band: 95% stratified-bootstrap CI"
 @dataclass
 class CurveBand:
     """An algorithm's success curves on one benchmark: x (in the figures' units), the estimates of
-    :func:`~sb3_mtte.experiments.statistics.curve_estimates` and the number of runs behind them."""
+    :func:`~sb3_mtte.experiments.results.statistics.curve_estimates` and the number of runs behind them."""
 
     x: np.ndarray
     estimates: dict[str, np.ndarray]

@@ -1,8 +1,8 @@
 """``train``: rl-zoo3's train with one sub-env per task, the variants' hyperparameters and resumable runs.
 
-Launcher options of ``train`` (besides rl-zoo's): :func:`~sb3_mtte.experiments.zoo_parsers.add_launcher_options`.
+Launcher options of ``train`` (besides rl-zoo's): :func:`~sb3_mtte.experiments.zoo.parsers.add_launcher_options`.
 Without ``-conf``, the hyperparameters of ``--algo`` are its family's file plus its overrides
-(:mod:`sb3_mtte.experiments.configs`). ``--algo`` takes the package's zoo keys only.
+(:mod:`sb3_mtte.experiments.zoo.configs`). ``--algo`` takes the package's zoo keys only.
 """
 
 from __future__ import annotations
@@ -10,24 +10,24 @@ from __future__ import annotations
 import argparse
 import contextlib
 import importlib.util
-import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import rl_zoo3
-import rl_zoo3.train
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3 import hyperparams_opt
 
 from sb3_mtte.common.utils import did_you_mean
-from sb3_mtte.experiments import command_prog, device_error, run_info
-from sb3_mtte.experiments.checkpoints import latest_run_with_model
-from sb3_mtte.experiments.configs import missing_entries_message, zoo_hyperparameters
+from sb3_mtte.experiments import run_info
+from sb3_mtte.experiments.cli import command_prog, device_error
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
-from sb3_mtte.experiments.manager import LaunchOptions, MultiTaskExperimentManager
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
-from sb3_mtte.experiments.zoo_parsers import TRAIN_DESCRIPTION, add_launcher_options, zoo_parser
+from sb3_mtte.experiments.zoo import adapter
+from sb3_mtte.experiments.zoo.configs import missing_entries_message, zoo_hyperparameters
+from sb3_mtte.experiments.zoo.manager import LaunchOptions, MultiTaskExperimentManager
+from sb3_mtte.experiments.zoo.parsers import TRAIN_DESCRIPTION, add_launcher_options, zoo_parser
+from sb3_mtte.experiments.zoo.run_checkpoints import latest_run_with_model
 
 TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
     "eval_freq": ("--eval-freq",),
@@ -73,7 +73,7 @@ def has_flag(argv: Sequence[str], *names: str) -> bool:
 
 def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
     """The latest run folder ``<log_folder>/<algo>/<env>_<id>`` that holds a model or checkpoint (else a started
-    run: :func:`~sb3_mtte.experiments.checkpoints.latest_run_with_model`)."""
+    run: :func:`~sb3_mtte.experiments.zoo.run_checkpoints.latest_run_with_model`)."""
     run_dir = latest_run_with_model(log_folder, algo, str(EnvironmentName(env_id)))
     if run_dir is None:
         raise SystemExit(
@@ -211,33 +211,14 @@ def train(argv: Sequence[str]) -> None:
 
 
 def run_zoo_train(zoo_argv: list[str], launch: LaunchOptions) -> None:
-    """Run rl-zoo's ``train()`` on ``zoo_argv`` with :class:`MultiTaskExperimentManager` as its manager.
-
-    rl-zoo's ``train()`` parses ``sys.argv`` and builds its ``ExperimentManager`` itself; both are swapped for
-    the time of the call.
-    """
+    """Run rl-zoo's ``train()`` on ``zoo_argv``, with :class:`MultiTaskExperimentManager` as its manager and the
+    package's parser (:func:`~sb3_mtte.experiments.zoo.adapter.run_train`)."""
 
     def make_manager(*args: Any, **kwargs: Any) -> MultiTaskExperimentManager:
         return MultiTaskExperimentManager(*args, launch=launch, **kwargs)
 
-    prog = command_prog("train", "sb3_mtte.zoo train")
-    with (
-        patched(sys, "argv", [f"{sys.argv[0]} train", *zoo_argv]),
-        patched(rl_zoo3.train, "ExperimentManager", make_manager),
-        zoo_parser(rl_zoo3.train, TRAIN_DESCRIPTION, launcher_options=True, prog=prog),
-    ):
-        rl_zoo3.train.train()
-
-
-@contextlib.contextmanager
-def patched(obj: Any, name: str, value: Any) -> Iterator[None]:
-    """Set ``obj.name`` to ``value`` for the time of a ``with`` block."""
-    old = getattr(obj, name)
-    setattr(obj, name, value)
-    try:
-        yield
-    finally:
-        setattr(obj, name, old)
+    parser = zoo_parser(TRAIN_DESCRIPTION, launcher_options=True, prog=command_prog("train"))
+    adapter.run_train(zoo_argv, make_manager, parser)
 
 
 __all__ = [
@@ -247,7 +228,6 @@ __all__ = [
     "flag_value",
     "has_flag",
     "latest_run_dir",
-    "patched",
     "register_algos",
     "run_zoo_train",
     "train",

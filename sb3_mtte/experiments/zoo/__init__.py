@@ -1,0 +1,14 @@
+"""Training through rl-zoo3: the ``train`` and ``sweep`` commands.
+
+- :mod:`~sb3_mtte.experiments.zoo.launcher`: ``train`` (rl-zoo's, with resume);
+- :mod:`~sb3_mtte.experiments.zoo.manager`: rl-zoo3's ``ExperimentManager`` for multi-task runs;
+- :mod:`~sb3_mtte.experiments.zoo.parsers`: rl-zoo's parsers of ``train`` and ``enjoy`` as the package shows them;
+- :mod:`~sb3_mtte.experiments.zoo.configs`: a zoo key's hyperparameters (family file + variant overrides);
+- :mod:`~sb3_mtte.experiments.zoo.training_callbacks`: checkpoints, evaluation and the optuna trial score;
+- :mod:`~sb3_mtte.experiments.zoo.run_checkpoints`: the resumable checkpoints of a run folder;
+- :mod:`~sb3_mtte.experiments.zoo.run_logs`: the logs of a run folder;
+- :mod:`~sb3_mtte.experiments.zoo.sweep`: a grid of runs on Ray Tune;
+- :mod:`~sb3_mtte.experiments.zoo.adapter`: every reach into rl-zoo3 past its public API.
+
+``run_checkpoints`` imports no rl-zoo3: ``evaluate`` loads its models through it.
+"""
