@@ -288,7 +288,7 @@ def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
 
 def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_model(tmp_path, monkeypatch):
     """SB3's order: a vector step's callbacks run before that step's update, so the evaluation at the final step
-    (and best_model.zip saved by it) sees the model before its last gradient step (README, "Run folders")."""
+    (and best_model.zip saved by it) sees the model before its last gradient step (docs/guide/train.md, "The run folder")."""
     from sb3_mtte.common import evaluation
     from sb3_mtte.envs import make_mt_env
     from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback
