@@ -1,4 +1,4 @@
-"""Importing the package keeps freed tensor memory in the process: an update stops page-faulting its tensors back."""
+"""tune_process() keeps freed tensor memory in the process: an update stops page-faulting its tensors back."""
 
 from __future__ import annotations
 
@@ -8,13 +8,14 @@ import sys
 
 import pytest
 
-from sb3_mtte import allocator
+from sb3_mtte import process
 
 TRAINING_STEPS = """
 import ctypes, resource, sys
 ctypes.CDLL(None).prctl(41, 1, 0, 0, 0)  # PR_SET_THP_DISABLE: count 4 KiB faults also where THP is "always"
-if sys.argv[1] == "package":
-    import sb3_mtte
+import sb3_mtte
+if sys.argv[1] == "tuned":
+    sb3_mtte.tune_process()
 import torch as th
 th.manual_seed(0)
 layers = lambda: [th.nn.Linear(49, 400), th.nn.ReLU(), th.nn.Linear(400, 400), th.nn.ReLU(), th.nn.Linear(400, 1)]
@@ -35,10 +36,10 @@ print((resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before) / 10)
 """
 
 
-def faults_per_step(imports: str, **variables: str) -> float:
-    env = {k: v for k, v in os.environ.items() if k not in (*allocator.USER_VARIABLES, allocator.OPT_OUT)}
+def faults_per_step(mode: str, **variables: str) -> float:
+    env = {k: v for k, v in os.environ.items() if k not in (*process.MALLOC_VARIABLES, process.MALLOC_OPT_OUT)}
     env.update(variables)
-    out = subprocess.run([sys.executable, "-c", TRAINING_STEPS, imports], env=env, capture_output=True, text=True)
+    out = subprocess.run([sys.executable, "-c", TRAINING_STEPS, mode], env=env, capture_output=True, text=True)
     assert out.returncode == 0, out.stderr
     return float(out.stdout)
 
@@ -49,16 +50,17 @@ GLIBC_STATIC_DEFAULTS = {"MALLOC_MMAP_THRESHOLD_": "131072", "MALLOC_TRIM_THRESH
 
 
 @pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc malloc tunables")
-def test_import_removes_most_page_faults_of_a_training_step() -> None:
-    plain = faults_per_step("torch only", **GLIBC_STATIC_DEFAULTS)
-    with_package = faults_per_step("package")
-    users_choice = faults_per_step("package", **GLIBC_STATIC_DEFAULTS)  # the package leaves the user's values alone
+def test_tune_process_removes_most_page_faults_of_a_training_step() -> None:
+    plain = faults_per_step("imported", **GLIBC_STATIC_DEFAULTS)
+    tuned = faults_per_step("tuned")
+    users_choice = faults_per_step("tuned", **GLIBC_STATIC_DEFAULTS)  # tune_process leaves the user's values alone
     assert plain > 500  # glibc's static defaults map and zero-fill freed blocks again at every step
-    assert with_package < 0.25 * plain
+    assert tuned < 0.25 * plain
     assert users_choice > 0.5 * plain
 
 
-@pytest.mark.parametrize("variable, value", [("MALLOC_TRIM_THRESHOLD_", "131072"), (allocator.OPT_OUT, "default")])
+@pytest.mark.parametrize("variable, value", [("MALLOC_TRIM_THRESHOLD_", "131072"), (process.MALLOC_OPT_OUT, "default")])
 def test_a_users_choice_is_kept(monkeypatch: pytest.MonkeyPatch, variable: str, value: str) -> None:
     monkeypatch.setenv(variable, value)
-    assert allocator.keep_freed_memory() is False
+    assert process.keep_freed_memory() is False
+    assert process.tune_process(spin_count=False) == (False, False)
