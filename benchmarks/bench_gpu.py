@@ -20,7 +20,9 @@ keeps the parts this run does not measure, so two runs, one per part, make one f
 
 from __future__ import annotations
 
-import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait before torch loads
+import sb3_mtte
+
+sb3_mtte.tune_process()  # before torch loads, as the package's commands do
 
 # isort: split
 

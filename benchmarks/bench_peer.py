@@ -101,7 +101,9 @@ def package_end_to_end(critic: str, warmstart: int, warm: int, timed: int) -> fl
 
 
 def package_side(args: argparse.Namespace) -> dict:
-    import sb3_mtte  # noqa: F401  # first, as users do: its process settings apply before torch loads
+    import sb3_mtte
+
+    sb3_mtte.tune_process()  # before torch loads, as the package's commands do
     import torch as th
 
     th.set_num_threads(2)

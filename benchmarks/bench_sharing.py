@@ -10,8 +10,9 @@ the settings so that drift of the machine hits them alike (medians over rounds).
     python benchmarks/bench_sharing.py --setting "libgomp default=GOMP_SPINCOUNT=300000" \
         --setting "spin 3000=GOMP_SPINCOUNT=3000"
 
-A setting is ``label=VAR=value,VAR=value`` (``label=`` alone: no variables). ``default`` is the package's own
-behaviour; ``torch-first`` is the same with ``import torch`` before the package (library use); ``libgomp default``
+A setting is ``label=VAR=value,VAR=value`` (``label=`` alone: no variables). ``default`` is what the package's
+commands do (``sb3_mtte.tune_process()`` before torch loads); ``torch-first`` imports torch first, so the spin count
+stays libgomp's; ``libgomp default``
 is the runtime's own spin count, the package's behaviour before it set one; ``glibc malloc=SB3_MTTE_MALLOC=default``
 keeps glibc's malloc thresholds (the package's behaviour before it raised them).
 """
@@ -51,6 +52,7 @@ def worker(start_at: float, seconds: float, torch_first: bool) -> None:
         import torch  # noqa: F401  # a script that imports torch before the package
     import sb3_mtte
 
+    sb3_mtte.tune_process()  # as the package's commands do; after torch it leaves the spin count alone
     from bench_updates import fill_buffer, quiet, synthetic_env
 
     model = quiet(sb3_mtte.MTSAC("MlpPolicy", synthetic_env(10), buffer_size=5120, device="cpu", seed=0))
