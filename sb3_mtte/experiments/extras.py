@@ -42,6 +42,7 @@ EXTRA_MODULES: dict[str, dict[str, str]] = {
     },
     "video": {"moviepy": "moviepy"},
     "ray": {"ray": "ray[tune]", "pyarrow": "ray[tune]"},
+    "envpool": {"envpool": "envpool"},  # make_mt_env(..., backend="envpool"); no command needs it
 }
 """Extra -> {top-level module: the distribution that installs it} (what a missing module is called on screen)."""
 
