@@ -8,11 +8,12 @@ from test_mtsac import all_params
 
 from sb3_mtte import MTSAC, make_mt_env
 from sb3_mtte.common.critics import MultiTaskCritic
-from sb3_mtte.experiments.results import BenchmarkStatistics, table1
-from sb3_mtte.experiments.statistics import Estimate
+from sb3_mtte.experiments.results.statistics import Estimate
+from sb3_mtte.experiments.results.tables import BenchmarkStatistics, table1
 from sb3_mtte.experiments.variants import paper_sources, paper_table1
 from sb3_mtte.mtsac.moore import MooreNetwork, gram_schmidt
 from sb3_mtte.mtsac.paco import PaCoNetwork
+from sb3_mtte.mtsac.task_conditioned import NetworkShape
 
 SMALL = {
     "MOOREPolicy": {"net_arch": [16, 16], "n_experts": 3},
@@ -97,7 +98,7 @@ def test_gram_schmidt_gives_orthonormal_vectors_equal_to_a_plain_loop():
 @th.no_grad()
 def test_moore_experts_are_orthonormal_per_state_and_equal_loop_gram_schmidt():
     th.manual_seed(1)
-    net = MooreNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_experts=4).double()
+    net = MooreNetwork(NetworkShape(2, 5, 3, [16, 8], 2, th.nn.ReLU), n_experts=4).double()
     x = th.randn(2, 6, 5, dtype=th.float64)
     basis = net.orthonormal_experts(x)
     gram = basis @ basis.transpose(-1, -2)
@@ -111,7 +112,7 @@ def test_moore_experts_are_orthonormal_per_state_and_equal_loop_gram_schmidt():
 @th.no_grad()
 def test_moore_task_combination_and_heads_equal_a_loop_over_tasks():
     th.manual_seed(2)
-    net = MooreNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_experts=4).double()
+    net = MooreNetwork(NetworkShape(2, 5, 3, [16, 8], 2, th.nn.ReLU), n_experts=4).double()
     x = th.randn(2, 3, 4, 5, dtype=th.float64)
     out = net(x)
     for c in range(2):
@@ -129,7 +130,7 @@ def test_moore_gradients_equal_those_of_the_plain_loop():
     """The forward never builds the basis (it combines the raw expert outputs with w^T T); its gradients must still
     be those of Gram-Schmidt followed by the task combination."""
     th.manual_seed(3)
-    net = MooreNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_experts=4).double()
+    net = MooreNetwork(NetworkShape(2, 5, 3, [16, 8], 2, th.nn.ReLU), n_experts=4).double()
     x = th.randn(2, 3, 4, 5, dtype=th.float64)
     params = list(net.parameters())
     fast = th.autograd.grad(net(x).square().sum(), params)
@@ -143,7 +144,7 @@ def test_moore_gradients_equal_those_of_the_plain_loop():
 # -------------------------------------------------------------------------------------------------- PaCo
 def test_paco_task_parameters_are_the_weighted_sum_of_the_shared_sets():
     th.manual_seed(3)
-    net = PaCoNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_parameter_sets=4).double()
+    net = PaCoNetwork(NetworkShape(2, 5, 3, [16, 8], 2, th.nn.ReLU), n_parameter_sets=4).double()
     for layer, (weight, bias) in enumerate(net.task_parameters()):
         assert weight.shape == (2, 3, *net.weights[layer].shape[2:])
         for c in range(2):
@@ -155,7 +156,7 @@ def test_paco_task_parameters_are_the_weighted_sum_of_the_shared_sets():
 
 def test_paco_forward_equals_a_loop_over_tasks_with_their_parameters():
     th.manual_seed(4)
-    net = PaCoNetwork(2, 5, 3, [16, 8], 2, th.nn.ReLU, n_parameter_sets=4).double()
+    net = PaCoNetwork(NetworkShape(2, 5, 3, [16, 8], 2, th.nn.ReLU), n_parameter_sets=4).double()
     x = th.randn(2, 3, 4, 5, dtype=th.float64)
     out = net(x)
     for c in range(2):

@@ -144,10 +144,11 @@ def test_entropy_loss_of_task_i_moves_only_beta_i():
 def test_the_training_steps_beta_update_is_eq_3_per_task():
     """With SGD at lr 1, log beta_i moves by mean_l (log pi_il + H-bar) (minus the gradient of Eq. 3 in log space)."""
     model = small_model()
-    model.ent_coef_optimizer = th.optim.SGD([model.log_ent_coef], lr=1.0)
+    model.temperature.optimizer = th.optim.SGD([model.log_ent_coef], lr=1.0)
     before = model.log_ent_coef.detach().clone()
     log_prob = th.tensor([[1.0, -3.0, 0.5], [-2.0, -2.0, -2.0], [0.0, 4.0, -1.0], [-6.0, 0.0, 3.0]])
-    used, _ = model._entropy_step(log_prob)
+    used = model.temperature.ent_coef  # what the update's losses use
+    model._entropy_coef_step(model.temperature.loss(log_prob), model.temperature.task_weights)
     target = model.target_entropy
     for i in range(4):
         expected_step = sum(value + target for value in log_prob[i].tolist()) / 3

@@ -43,6 +43,22 @@ def test_invalid_hyperparameters(toy_env):
             MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(**bad))
 
 
+@pytest.mark.parametrize(
+    "bad, message",
+    [
+        ({"nt_chunk_size": 0}, "nt_chunk_size must be 'auto', None or a positive int"),
+        ({"nt_chunk_size": "all"}, "nt_chunk_size must be 'auto', None or a positive int"),
+        ({"nt_measure": "median"}, "nt_measure must be one of"),
+        ({"rep_gradient_steps": 0}, r"iteration_length \(H\) and rep_gradient_steps must be at least 1"),
+        ({"policy_kwargs": {"rep_learning_rate": 1e-3}}, "rep_learning_rate is an argument of MTSACTE"),
+        ({"critic_arch": "shared"}, "MTSACTE's critics are per task"),
+    ],
+)
+def test_each_argument_check_names_its_argument(toy_env, bad, message):
+    with pytest.raises(ValueError, match=message):
+        MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(**bad))
+
+
 def test_env_without_one_sub_env_per_task():
     """3 sub-envs whose observations carry a 4-entry one-hot: rejected with a message naming the one-hot layout."""
     env = make_episode_env(n_tasks=4, n_envs=3)

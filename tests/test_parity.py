@@ -258,7 +258,7 @@ def test_one_task_update_is_sb3_sac_update(policy, n_updates, optimizer_class):
 
 # ---------------------------------------------------------------------------------------------- learning
 def load_parity_script():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "sac_parity.py"
+    path = Path(__file__).resolve().parents[1] / "scripts" / "studies" / "sac_parity.py"
     spec = importlib.util.spec_from_file_location("sac_parity", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
@@ -287,7 +287,7 @@ def test_pendulum_learns_as_with_sb3_sac():
     """rl-zoo3's Pendulum-v1 SAC setting (20k steps, lr 1e-3), identical for both, seeds 0-2.
 
     Bar: both reach a mean final return > -400 (a random policy scores about -1200), and the mean final
-    returns differ by less than 50. Measured (benchmarks/sac_parity.py): MTSAC -134.9 +- 10.1, SAC -135.5 +- 9.3
+    returns differ by less than 50. Measured (scripts/studies/sac_parity.py): MTSAC -134.9 +- 10.1, SAC -135.5 +- 9.3
     over seeds 0-2, so the standard error of the difference of the two means is about 8: 50 is six of them.
     """
     parity = load_parity_script()

@@ -90,12 +90,12 @@ class MultiTaskPolicy(BasePolicy):
 
     :param observation_space: flat Box: state followed by the N-dim one-hot.
     :param action_space: Box action space.
-    :param n_tasks: number of tasks N.
-    :param net_arch: hidden widths of every network, a list, or a dict by network name (``pi``, ``qf``, ...) whose
-        missing entries are 2 x 400.
+    :param n_tasks: number of tasks N (set by the algorithm).
+    :param net_arch: hidden widths of every network (2 x 400 by default, as in Appendix B), a list, or a dict by
+        network name (``pi``, ``qf``, ...) whose missing entries are 2 x 400.
     :param activation_fn: activation function.
     :param n_critics: twin Q-networks per critic.
-    :param optimizer_class: optimizer class.
+    :param optimizer_class: optimizer class (Adam by default).
     :param optimizer_kwargs: optimizer keyword arguments (``fused=True`` for Adam/AdamW by default).
     """
 
@@ -103,12 +103,12 @@ class MultiTaskPolicy(BasePolicy):
         self,
         observation_space: spaces.Box,
         action_space: spaces.Box,
-        n_tasks: int,
-        net_arch: list[int] | dict[str, list[int]] | None,
-        activation_fn: type[nn.Module],
-        n_critics: int,
-        optimizer_class: type[th.optim.Optimizer],
-        optimizer_kwargs: dict[str, Any] | None,
+        n_tasks: int = 1,
+        net_arch: list[int] | dict[str, list[int]] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        n_critics: int = 2,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
     ) -> None:
         if optimizer_kwargs is None:
             optimizer_kwargs = {"fused": True} if optimizer_class in (th.optim.Adam, th.optim.AdamW) else {}

@@ -1,6 +1,6 @@
 """Every extension of an MTSAC update: what happens to the ``(N,)`` per-task losses and gradients.
 
-An update (:meth:`sb3_mtte.MTSAC._sac_update`) asks its algorithm's :class:`UpdateHook`, in this order:
+An update (:meth:`sb3_mtte.MTSAC._update`) asks its algorithm's :class:`UpdateHook`, in this order:
 
 1. :meth:`~UpdateHook.loss_mask` on the ``(N,)`` critic losses: a factor per task for this update's losses;
 2. :meth:`~UpdateHook.task_weights`: the ``(N,)`` weights w of the actor loss ``sum_i w_i L_i`` (Eq. 9);

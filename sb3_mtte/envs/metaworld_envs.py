@@ -39,6 +39,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
+from sb3_mtte.common.evaluation import ScriptedPolicy
 from sb3_mtte.common.utils import nearest_names
 from sb3_mtte.envs.wrappers import MultiTaskWrapper
 
@@ -296,10 +297,8 @@ def make_metaworld_env_fns(task_names: Sequence[str], seed: int = 0, **kwargs: A
     ]
 
 
-class MetaWorldExpertPolicy:
+class MetaWorldExpertPolicy(ScriptedPolicy):
     """Meta-World's scripted expert of each task behind an SB3-style ``predict`` (batched over sub-envs).
-
-    Row j of the batch is handed to the expert of the task its one-hot names, without the one-hot.
 
     :param task_names: the benchmark's task names, in task order.
     """
@@ -309,19 +308,11 @@ class MetaWorldExpertPolicy:
 
         self.task_names = validate_task_names(task_names)
         self.experts = [ENV_POLICY_MAP[name]() for name in self.task_names]
+        self.n_tasks = len(self.experts)
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, None]:
-        """Expert actions for a batch of observations (39-d state followed by the one-hot)."""
-        n_tasks = len(self.experts)
-        observation = np.asarray(observation, dtype=np.float64)
-        tasks = observation[:, -n_tasks:].argmax(axis=1)
+    def task_actions(self, states: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+        """Expert actions for 39-d states."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # the experts warn about their own gains on every call
-            actions = [self.experts[t].get_action(row[:-n_tasks]) for t, row in zip(tasks, observation, strict=True)]
-        return np.clip(np.stack(actions), -1.0, 1.0).astype(np.float32), None
+            rows = states.astype(np.float64)
+            return np.stack([self.experts[t].get_action(row) for t, row in zip(tasks, rows, strict=True)])

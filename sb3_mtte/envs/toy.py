@@ -34,6 +34,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
+from sb3_mtte.common.evaluation import ScriptedPolicy
 from sb3_mtte.envs.wrappers import MultiTaskWrapper
 
 STEP_SIZE = 0.1
@@ -257,7 +258,7 @@ def make_toy_env_fns(
     ]
 
 
-class ToyOraclePolicy:
+class ToyOraclePolicy(ScriptedPolicy):
     """Scripted policy that heads straight for each task's goal centre (an SB3-style ``predict``).
 
     :param benchmark: toy benchmark name (optionally with ``-N``).
@@ -269,16 +270,7 @@ class ToyOraclePolicy:
         if parsed is None:
             raise ValueError(f"Unknown toy benchmark {benchmark!r}.")
         _, self.centers = TOY_BENCHMARKS[parsed[0]](parsed[1])
+        self.n_tasks = len(self.centers)
 
-    def predict(
-        self,
-        observation: np.ndarray,
-        state: Any = None,
-        episode_start: np.ndarray | None = None,
-        deterministic: bool = True,
-    ) -> tuple[np.ndarray, None]:
-        """Actions for a batch of observations (state followed by the one-hot)."""
-        n_tasks = len(self.centers)
-        task = np.asarray(observation)[:, -n_tasks:].argmax(axis=1)
-        delta = self.centers[task] - observation[:, :2]
-        return np.clip(delta / STEP_SIZE, -1.0, 1.0).astype(np.float32), None
+    def task_actions(self, states: np.ndarray, tasks: np.ndarray) -> np.ndarray:
+        return (self.centers[tasks] - states[:, :2]) / STEP_SIZE

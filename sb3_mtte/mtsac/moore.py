@@ -15,7 +15,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP
-from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_weights_
+from sb3_mtte.mtsac.task_conditioned import NetworkShape, TaskConditionedPolicy, init_task_weights_
 
 GRAM_SCHMIDT_EPS = 1e-8
 
@@ -73,29 +73,16 @@ def orthonormal_combination(vectors: th.Tensor, weights: th.Tensor) -> th.Tensor
 class MooreNetwork(nn.Module):
     """C independent MOORE networks: k experts, Gram-Schmidt, task weights, tanh, one output head per task.
 
-    Experts are one ensemble of C * k MLPs (hidden layers ``hidden_sizes[:-1]``, linear output of width
-    d = ``hidden_sizes[-1]``); heads are one ensemble of C * N linear layers.
+    Experts are one ensemble of C * k MLPs (hidden layers ``shape.hidden_sizes[:-1]``, linear output of width
+    d = ``shape.hidden_sizes[-1]``); heads are one ensemble of C * N linear layers.
 
-    :param n_copies: number of independent networks C (1 actor, or the twin critics).
-    :param in_features: input size (the state, or state + action).
-    :param n_tasks: number of tasks N.
-    :param hidden_sizes: expert widths; the last one is the representation width d.
-    :param out_features: output size of every head.
-    :param activation_fn: activation between expert layers.
+    :param shape: the copies, sizes and activation (:class:`~sb3_mtte.mtsac.task_conditioned.NetworkShape`).
     :param n_experts: number of experts k (1 <= k <= d).
     """
 
-    def __init__(
-        self,
-        n_copies: int,
-        in_features: int,
-        n_tasks: int,
-        hidden_sizes: list[int],
-        out_features: int,
-        activation_fn: type[nn.Module],
-        n_experts: int = 4,
-    ) -> None:
+    def __init__(self, shape: NetworkShape, n_experts: int = 4) -> None:
         super().__init__()
+        n_copies, in_features, n_tasks, hidden_sizes, out_features, activation_fn = shape
         check_moore_arguments(n_experts, hidden_sizes)
         self.n_copies, self.n_tasks, self.n_experts = n_copies, n_tasks, n_experts
         width = hidden_sizes[-1]

@@ -6,61 +6,54 @@ SAC-Ind) and, for SAC-MT-with-clip, ``q_loss_clip=2000``.
 
 from __future__ import annotations
 
-import math
 import warnings
-from collections import deque
 from typing import Any, ClassVar, TypeVar
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
-from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
 from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
-from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
-from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
+from sb3_mtte.common.captured_update import set_learning_rate
 from sb3_mtte.common.gradient_surgery import check_gradient_surgery
 from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
+from sb3_mtte.common.multitask_algorithm import MultiTaskOffPolicyAlgorithm
 from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
+from sb3_mtte.common.update_monitor import Stats, UpdateMonitor
 from sb3_mtte.common.utils import (
     caller_stacklevel,
     check_batch_size,
     check_buffer_size,
     check_learning_rate,
-    check_multitask_env,
     check_not_gymnasium_vector_env,
-    check_one_hot,
-    get_task_names,
+    polyak_update,
 )
-from sb3_mtte.mtsac.entropy import EntropyCoefMixin, check_ent_coef_arch
+from sb3_mtte.mtsac.checks import check_ent_coef_arch, check_q_loss_clip, check_update_path
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
-from sb3_mtte.mtsac.task_logs import PerTaskLogMixin
-from sb3_mtte.mtsac.task_steps import TaskStepMixin
-from sb3_mtte.mtsac.update_path import UpdatePathMixin, check_update_path
-from sb3_mtte.openmp import warn_if_spinning
+from sb3_mtte.mtsac.task_logs import MEAN_STATS, record_train_stats
+from sb3_mtte.mtsac.task_steps import enable_kept_rows, task_step
+from sb3_mtte.mtsac.temperature import MultiTaskTemperature, learned_initial_value, resolve_target_entropy
+from sb3_mtte.mtsac.update_path import resolve_update_path, update_runner
 
 SelfMTSAC = TypeVar("SelfMTSAC", bound="MTSAC")
 
 
-def check_q_loss_clip(q_loss_clip: float | None) -> None:
-    if q_loss_clip is not None and not (q_loss_clip > 0 and math.isfinite(q_loss_clip)):
-        raise ValueError(f"q_loss_clip (V_clip) must be a positive number or None, got {q_loss_clip}.")
-
-
-class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, OffPolicyAlgorithm):
+class MTSAC(MultiTaskOffPolicyAlgorithm):
     """Multi-task Soft Actor-Critic for a VecEnv with one sub-env per task (observation = state + one-hot).
 
     Batches are balanced and task-major: every update draws ``batch_size`` (L) transitions per task. With a
     single task (N = 1, e.g. a gymnasium env wrapped in :class:`~sb3_mtte.envs.wrappers.OneHotTaskWrapper`) and
     ``"MlpPolicy"``, the update is SB3's SAC update.
 
-    Every update hands the ``(N,)`` per-task losses and weights of the entropy coefficients, the critic and the actor
-    to :meth:`_entropy_coef_step`, :meth:`_critic_step` and :meth:`_actor_step`, which minimise ``sum_i w_i L_i``.
+    :meth:`train` runs :meth:`_update` once per gradient step, eagerly or as its CUDA graph. The update computes the
+    ``(N,)`` per-task losses of the entropy coefficients, the critic and the actor, in that order, and hands each to
+    :meth:`_entropy_coef_step`, :meth:`_critic_step` or :meth:`_actor_step`, which minimise ``sum_i w_i L_i``.
     What else happens to the per-task losses and gradients (the actor's weights, a mask of tasks, a combination of
     the task gradients, a reset after the update) is :attr:`update_hook`'s, built from :meth:`update_hooks` and the
     policy's (:mod:`sb3_mtte.common.update_hooks`).
@@ -112,10 +105,7 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         "MOOREPolicy": MOOREPolicy,
         "PaCoPolicy": PaCoPolicy,
     }
-    min_tasks: ClassVar[int] = 1
-    """Smallest task count N the algorithm accepts (1: a single task with the one-hot ``[1.0]`` is SAC)."""
     policy: MTSACPolicy
-    replay_buffer: MultiTaskReplayBuffer | None
 
     def __init__(
         self,
@@ -182,19 +172,12 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
             sde_support=False,
         )
         self.algorithm_name = type(self).__name__
-        self.n_tasks = check_multitask_env(self.env, min_tasks=self.min_tasks) if self.env is not None else 0
-        self.task_names: list[str] = get_task_names(self.env) if self.env is not None else []
-        self.critic_arch = critic_arch
-        self.ent_coef_arch = ent_coef_arch
-        self.q_loss_clip = q_loss_clip
-        self.gradient_surgery = gradient_surgery
-        self.cagrad_c = cagrad_c
-        self.update_path = update_path
-        self.ent_coef = ent_coef
-        self.target_entropy = target_entropy
+        self._setup_tasks()
+        self.critic_arch, self.ent_coef_arch, self.q_loss_clip = critic_arch, ent_coef_arch, q_loss_clip
+        self.gradient_surgery, self.cagrad_c, self.update_path = gradient_surgery, cagrad_c, update_path
+        self.ent_coef, self.target_entropy = ent_coef, target_entropy
         self.target_update_interval = target_update_interval
-        self.log_ent_coef: th.Tensor | None = None
-        self.ent_coef_optimizer: th.optim.Optimizer | None = None
+        self.temperature: MultiTaskTemperature | None = None
         if _init_setup_model:
             self._setup_model()
 
@@ -211,10 +194,12 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
         ).to(self.device)
         self._convert_train_freq()
         self._create_aliases()
-        self._setup_update_hook()
+        self.update_hook = UpdateHooks([*self.update_hooks(), *self.policy.update_hooks()])
+        self.update_hook.attach(self)
+        enable_kept_rows((self.actor, self.critic), self.update_hook.combines_gradients)
         if self.env is not None:
             self._setup_replay_buffer()
-        self._setup_entropy_coef()
+        self._setup_temperature()
         self._setup_update_path()
 
     def update_hooks(self) -> list[UpdateHook]:
@@ -223,74 +208,117 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
             return []
         return [GradientSurgery(self.gradient_surgery, self.cagrad_c)]
 
-    def _setup_update_hook(self) -> None:
-        self.update_hook = UpdateHooks([*self.update_hooks(), *self.policy.update_hooks()])
-        self.update_hook.attach(self)
-        self._enable_kept_rows()
-
     def _policy_build_kwargs(self) -> dict[str, Any]:
         """Policy arguments owned by the algorithm (not stored in ``policy_kwargs``)."""
         return {"n_tasks": self.n_tasks, "critic_arch": self.critic_arch}
-
-    def _setup_replay_buffer(self) -> None:
-        """Build the replay buffer (lazily, so ``load(path, env=None)`` allocates none)."""
-        if self.replay_buffer is None:
-            self.replay_buffer = self.replay_buffer_class(
-                self.buffer_size,
-                self.observation_space,
-                self.action_space,
-                device=self.device,
-                n_envs=self.n_tasks,
-                optimize_memory_usage=self.optimize_memory_usage,
-                **self.replay_buffer_kwargs,
-            )
 
     def _create_aliases(self) -> None:
         self.actor = self.policy.actor
         self.critic = self.policy.critic
         self.critic_target = self.policy.critic_target
 
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ):
-        self._setup_replay_buffer()
-        result = super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
-        check_one_hot(self._last_obs, self.n_tasks)  # type: ignore[arg-type]
-        if self.device.type == "cpu":
-            warn_if_spinning(th.get_num_threads())
-        if not hasattr(self, "_task_success") or reset_num_timesteps:
-            self._task_success = [deque(maxlen=self._stats_window_size) for _ in range(self.n_tasks)]
-        return result
+    def _setup_temperature(self) -> None:
+        """beta_i: a learned :class:`MultiTaskTemperature`, or the fixed ``ent_coef_tensor``."""
+        self.target_entropy = resolve_target_entropy(self.target_entropy, self.action_space)
+        init_value = learned_initial_value(self.ent_coef)
+        self.temperature = None
+        if init_value is None:
+            self.ent_coef_tensor = th.full((self.n_tasks,), float(self.ent_coef), device=self.device)
+            return
+        shared, learning_rate = self.ent_coef_arch == "shared", self.lr_schedule(1)
+        self.temperature = MultiTaskTemperature(
+            self.n_tasks, init_value, self.target_entropy, shared, learning_rate, self.device
+        )
 
-    def set_env(self, env: GymEnv, force_reset: bool = True) -> None:
-        check_not_gymnasium_vector_env(env)
-        if isinstance(env, VecEnv):
-            check_multitask_env(env, self.n_tasks, min_tasks=self.min_tasks)
-        super().set_env(env, force_reset)
-        self.task_names = get_task_names(self.env)  # type: ignore[arg-type]
+    @property
+    def log_ent_coef(self) -> th.Tensor | None:
+        """The learned log beta (the temperature's; SB3's name, saved in checkpoints), None for a fixed beta."""
+        return None if self.temperature is None else self.temperature.log_ent_coef
+
+    @property
+    def ent_coef_optimizer(self) -> th.optim.Optimizer | None:
+        """The optimizer of the learned log beta (the temperature's; SB3's name), None for a fixed beta."""
+        return None if self.temperature is None else self.temperature.optimizer
+
+    @property
+    def entropy_coefficients(self) -> th.Tensor:
+        """Current per-task beta_i, shape (N,) (one value N times when shared)."""
+        return self.ent_coef_tensor if self.temperature is None else self.temperature.ent_coef
+
+    def resolved_update_path(self) -> str:
+        """``"eager"`` or ``"cuda_graph"`` (:func:`~sb3_mtte.mtsac.update_path.resolve_update_path`)."""
+        return resolve_update_path(self.update_path, self.device, self.update_hook.capturable)
+
+    def _setup_update_path(self, capture: bool = True) -> None:
+        """Build the monitor and the runner of the resolved path (``capture=False``: the graph path's static
+        inputs and deferred reads without the graph, which the CPU can run). What the old monitor kept is read
+        first (its statistics recorded, a non-finite loss raised)."""
+        if getattr(self, "update_monitor", None) is not None:
+            self.update_monitor.read()
+        path = self.resolved_update_path() if capture else "cuda_graph"
+        deferred = path != "eager"
+        record = self._record_train_stats
+        self.update_monitor = UpdateMonitor(self.device, deferred, record, MEAN_STATS, self._n_updates)
+        self._update_runner = update_runner(path, self._update, self._optimizers, self.device, capture)
+
+    def _optimizers(self) -> list[th.optim.Optimizer]:
+        optimizers = [self.actor.optimizer, self.critic.optimizer]
+        return optimizers if self.ent_coef_optimizer is None else [*optimizers, self.ent_coef_optimizer]
 
     # --------------------------------------------------------------------------------------------- training
-    def _sac_update(self, replay_data: MultiTaskReplayBufferSamples) -> dict[str, th.Tensor]:
-        """One SAC update on a task-major batch: beta_i, then critics (Eq. 15-16), then actor (Eq. 9)."""
+    def train(self, gradient_steps: int, batch_size: int = 128) -> None:
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self._optimizers())
+        self.update_monitor.set_env_step(self.num_timesteps)
+        stats: dict[str, list[th.Tensor]] = {}
+        for gradient_step in range(gradient_steps):
+            replay_data = self.replay_buffer.sample(batch_size, env=self._vec_normalize_env)  # type: ignore[union-attr]
+            polyak = gradient_step % self.target_update_interval == 0
+            for key, value in self._update_runner(replay_data, polyak).items():  # _update, or its CUDA graph
+                stats.setdefault(key, []).append(value)
+        self._n_updates += gradient_steps
+        self.update_monitor.add_train_stats({key: th.stack(values).mean(0) for key, values in stats.items()})
+
+    def _update(self, replay_data: MultiTaskReplayBufferSamples, polyak: bool) -> Stats:
+        """One SAC update on a task-major batch: beta_i (Eq. 3), the critics (Eq. 15-16), the actor (Eq. 9), then
+        the Polyak step of the target critics when ``polyak``. It reads no device tensor on the host, so that the
+        CUDA graph can record it."""
         actions_pi, log_prob = self.policy.action_log_prob(replay_data.observations)
-        ent_coef, stats = self._entropy_step(log_prob)
-        critic_losses, clipped = self._critic_losses(replay_data, ent_coef)
-        kept = self.update_hook.loss_mask(critic_losses.detach())
-        self._critic_step(critic_losses, kept)
+
+        # Entropy coefficients (Eq. 3): the losses below use beta_i from before this step, as SB3's SAC
+        if self.temperature is None:
+            ent_coef = self.ent_coef_tensor
+            stats = {"ent_coef": ent_coef}
+        else:
+            ent_coef = self.temperature.ent_coef
+            ent_coef_loss = self._entropy_coef_step(self.temperature.loss(log_prob), self.temperature.task_weights)
+            stats = {"ent_coef_loss": ent_coef_loss.detach(), "ent_coef": ent_coef}
+
+        # Critics (Eq. 15-16): every task's clipped soft Bellman loss, twin critics summed
+        with th.no_grad():
+            next_actions, next_log_prob = self.policy.action_log_prob(replay_data.next_observations)
+            next_q = self.critic_target(replay_data.next_observations, next_actions).min(dim=0).values
+            next_q = next_q - ent_coef[:, None] * next_log_prob
+            target_q = replay_data.rewards + (1 - replay_data.dones) * self.gamma * next_q
+        current_q = self.critic(replay_data.observations, replay_data.actions)
+        critic_losses = clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
+        if self.q_loss_clip is not None:
+            stats["q_loss_clip_fraction"] = clipped_sample_fraction(current_q.detach(), target_q, self.q_loss_clip)
+        loss_mask = self.update_hook.loss_mask(critic_losses.detach())
+        self._critic_step(critic_losses, loss_mask)
         stats["critic_loss"] = critic_losses.detach()
-        if clipped is not None:
-            stats["q_loss_clip_fraction"] = clipped
-        self.critic.requires_grad_(False)  # constants of the actor loss: no gradient for them in its backward pass
+
+        # Actor (Eq. 9): the per-task losses -J_SAC,i weighted by w; the critics are constants of its backward pass
+        self.critic.requires_grad_(False)
         min_q_pi = self.critic(replay_data.observations, actions_pi).min(dim=0).values
         self.critic.requires_grad_(True)
         actor_losses = -sac_task_objective(log_prob, min_q_pi, ent_coef)
-        stats["actor_loss"] = self._actor_step(actor_losses, self._actor_weights() * kept).detach()
+        stats["actor_loss"] = self._actor_step(actor_losses, self._actor_weights() * loss_mask).detach()
         self.update_hook.after_update()
+
+        if polyak:
+            polyak_update(self.critic.parameters(), self.critic_target.parameters(), self.tau)
+        self.update_monitor.count_update()
         return stats
 
     def _actor_weights(self) -> th.Tensor:
@@ -300,46 +328,44 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
             return th.full((self.n_tasks,), 1.0 / self.n_tasks, device=self.device)
         return weights
 
-    def _critic_losses(
-        self, replay_data: MultiTaskReplayBufferSamples, ent_coef: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor | None]:
-        """``(N,)`` clipped soft Bellman loss of every task (Eq. 15-16), twin critics summed, and the ``(N,)`` share
-        of samples the clip dropped (None without ``q_loss_clip``)."""
-        with th.no_grad():
-            next_actions, next_log_prob = self.policy.action_log_prob(replay_data.next_observations)
-            next_q = self.critic_target(replay_data.next_observations, next_actions).min(dim=0).values
-            next_q = next_q - ent_coef[:, None] * next_log_prob
-            target_q = replay_data.rewards + (1 - replay_data.dones) * self.gamma * next_q
-        current_q = self.critic(replay_data.observations, replay_data.actions)
-        losses = clipped_soft_q_loss(current_q, target_q, self.q_loss_clip)
-        if self.q_loss_clip is None:
-            return losses, None
-        return losses, clipped_sample_fraction(current_q.detach(), target_q, self.q_loss_clip)
+    def _entropy_coef_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
+        """One step of the learned beta_i on the ``(N,)`` temperature losses; returns the loss minimised."""
+        combining_hook = self._combining_hook(self.ent_coef_arch == "shared")
+        optimizer, name = self.ent_coef_optimizer, "entropy coefficient loss"
+        return task_step(optimizer, name, task_losses, task_weights, self.update_monitor, combining_hook)  # type: ignore[arg-type]
 
     def _critic_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
-        """Apply one critic update from the per-task losses.
-
-        :param task_losses: ``(N,)`` per-task critic losses (with their graph).
-        :param task_weights: ``(N,)`` weights of the tasks (the update hook's loss mask).
-        :return: the loss that was minimised.
-        """
-        shared = self.critic_arch == "shared"
-        return self._task_step(self.critic.optimizer, "critic loss", task_losses, task_weights, shared, self.critic)
+        """One critic step on the ``(N,)`` critic losses, weighted by the update hook's loss mask."""
+        combining_hook = self._combining_hook(self.critic_arch == "shared")
+        optimizer, monitor = self.critic.optimizer, self.update_monitor
+        return task_step(optimizer, "critic loss", task_losses, task_weights, monitor, combining_hook, self.critic)
 
     def _actor_step(self, task_losses: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
-        """Apply one actor update from the per-task losses -J_SAC,i.
+        """One actor step on the ``(N,)`` losses -J_SAC,i, weighted by w of Eq. 9 times the loss mask."""
+        combining_hook = self._combining_hook(shared=True)
+        optimizer, monitor = self.actor.optimizer, self.update_monitor
+        return task_step(optimizer, "actor loss", task_losses, task_weights, monitor, combining_hook, self.actor)
 
-        :param task_losses: ``(N,)`` per-task policy losses (with their graph).
-        :param task_weights: ``(N,)`` w of Eq. 9 (:meth:`_actor_weights`) times the loss mask.
-        :return: the loss that was minimised.
-        """
-        return self._task_step(self.actor.optimizer, "actor loss", task_losses, task_weights, True, self.actor)
+    def _combining_hook(self, shared: bool) -> UpdateHook | None:
+        """The update hook when it combines the task gradients and the tasks share the parameters, else None
+        (disjoint per-task parameters have nothing to combine)."""
+        return self.update_hook if shared and self.update_hook.combines_gradients else None
+
+    def _update_learning_rate(self, optimizers: list[th.optim.Optimizer] | th.optim.Optimizer) -> None:
+        """SB3's, writing a learning rate held in a tensor in place (the CUDA graph reads it there)."""
+        learning_rate = self.lr_schedule(self._current_progress_remaining)
+        self.logger.record("train/learning_rate", learning_rate)
+        set_learning_rate(optimizers if isinstance(optimizers, list) else [optimizers], learning_rate)
+
+    # ------------------------------------------------------------------------------------------------- logs
+    def _record_train_stats(self, stats: dict[str, np.ndarray]) -> None:
+        record_train_stats(self.logger, stats, self._n_updates, self.task_names)
 
     # ------------------------------------------------------------------------------------------ save / load
     def _excluded_save_params(self) -> list[str]:
-        excluded = ["actor", "critic", "critic_target", "_task_success", "_last_dump_timesteps", "update_hook"]
-        excluded += ["update_monitor", "_update_runner"]
-        return [*super()._excluded_save_params(), *excluded]
+        aliases = ["actor", "critic", "critic_target", "temperature"]
+        runtime = ["update_hook", "update_monitor", "_update_runner"]
+        return [*super()._excluded_save_params(), *self.unsaved_attributes, *aliases, *runtime]
 
     def _get_torch_save_params(self) -> tuple[list[str], list[str]]:
         state_dicts = ["policy", "actor.optimizer", "critic.optimizer"]
@@ -347,30 +373,10 @@ class MTSAC(EntropyCoefMixin, TaskStepMixin, UpdatePathMixin, PerTaskLogMixin, O
             return [*state_dicts, "ent_coef_optimizer"], ["log_ent_coef"]
         return state_dicts, ["ent_coef_tensor"]
 
-    def save(self, path, exclude=None, include=None) -> None:
-        """Save the model; the RNG states are saved with it so that a resumed run continues exactly."""
-        self.update_monitor.check()
-        self.rng_state = capture_rng_state(self.action_space)
-        try:
-            super().save(path, exclude=exclude, include=include)
-        finally:
-            del self.rng_state
-
-    @classmethod
-    def load(cls, path, env: GymEnv | None = None, device: th.device | str = "auto", **kwargs):  # type: ignore[override]
-        """Load a model saved by this class; a checkpoint of another algorithm or task count raises ValueError.
-
-        ``env=None`` is enough for prediction and evaluation: no replay buffer is allocated. The RNG states saved
-        with the model are restored, so training resumed from a model and its replay buffer continues as if it
-        had never stopped (CPU).
-        """
-        n_tasks = env.num_envs if isinstance(env, VecEnv) else None
-        check_checkpoint(path, cls.__name__, n_tasks)
-        model = super().load(path, env=env, device=device, **kwargs)
-        rng_state = model.__dict__.pop("rng_state", None)
-        if rng_state is not None:
-            restore_rng_state(rng_state, model.action_space)
-        return model
+    def set_parameters(self, load_path_or_dict, exact_match: bool = True, device: th.device | str = "auto") -> None:
+        """SB3's, then a new runner: a loaded optimizer state replaces the tensors a captured graph would read."""
+        super().set_parameters(load_path_or_dict, exact_match, device)
+        self._setup_update_path()
 
     def learn(
         self: SelfMTSAC,

@@ -18,7 +18,7 @@ from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
 from sb3_mtte.common.update_hooks import CollapseReset, UpdateHook
-from sb3_mtte.mtsac.task_conditioned import TaskConditionedPolicy, init_task_weights_
+from sb3_mtte.mtsac.task_conditioned import NetworkShape, TaskConditionedPolicy, init_task_weights_
 
 
 def compose_parameters(parameter_sets: th.Tensor, task_weights: th.Tensor) -> th.Tensor:
@@ -47,28 +47,15 @@ def interpolated_task_weights(task_weights: th.Tensor, collapsed: th.Tensor, mix
 class PaCoNetwork(nn.Module):
     """C independent PaCo MLPs: every linear layer is K parameter sets composed per task by w (N, K).
 
-    :param n_copies: number of independent networks C (1 actor, or the twin critics).
-    :param in_features: input size (the state, or state + action).
-    :param n_tasks: number of tasks N.
-    :param hidden_sizes: hidden widths.
-    :param out_features: output size.
-    :param activation_fn: activation between layers.
+    :param shape: the copies, sizes and activation (:class:`~sb3_mtte.mtsac.task_conditioned.NetworkShape`).
     :param n_parameter_sets: K.
     """
 
-    def __init__(
-        self,
-        n_copies: int,
-        in_features: int,
-        n_tasks: int,
-        hidden_sizes: list[int],
-        out_features: int,
-        activation_fn: type[nn.Module],
-        n_parameter_sets: int = 5,
-    ) -> None:
+    def __init__(self, shape: NetworkShape, n_parameter_sets: int = 5) -> None:
         super().__init__()
         if n_parameter_sets < 1:
             raise ValueError(f"PaCo needs n_parameter_sets (K) >= 1, got {n_parameter_sets}.")
+        n_copies, in_features, n_tasks, hidden_sizes, out_features, activation_fn = shape
         self.n_copies, self.n_tasks, self.n_parameter_sets = n_copies, n_tasks, n_parameter_sets
         sizes = [in_features, *hidden_sizes, out_features]
         self.weights = nn.ParameterList(

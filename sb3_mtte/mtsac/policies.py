@@ -143,14 +143,11 @@ class MTSACPolicy(MultiTaskPolicy):
     :param observation_space: flat Box: state followed by the N-dim one-hot.
     :param action_space: Box action space.
     :param lr_schedule: learning-rate schedule.
-    :param n_tasks: number of tasks N (set by the algorithm).
-    :param net_arch: hidden widths, a list for actor and critic or ``dict(pi=[...], qf=[...])``.
-    :param activation_fn: activation function.
     :param critic_arch: ``"per_task"`` (one twin Q per task, default) or ``"shared"``.
-    :param n_critics: number of twin Q-networks.
     :param actor_kwargs: extra keyword arguments of the actor class (e.g. soft-modular depth).
-    :param optimizer_class: optimizer class (Adam, fused where supported, by default).
-    :param optimizer_kwargs: optimizer keyword arguments.
+    :param kwargs: ``n_tasks`` (set by the algorithm), ``net_arch`` (a list for actor and critic or
+        ``dict(pi=[...], qf=[...])``), ``activation_fn``, ``n_critics``, ``optimizer_class`` and ``optimizer_kwargs``
+        of :class:`~sb3_mtte.common.policies.MultiTaskPolicy`.
     """
 
     actor_class: type[MultiTaskActor] = SharedActor
@@ -160,29 +157,15 @@ class MTSACPolicy(MultiTaskPolicy):
         observation_space: spaces.Box,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        n_tasks: int = 1,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
         critic_arch: str = "per_task",
-        n_critics: int = 2,
         actor_kwargs: dict[str, Any] | None = None,
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
     ) -> None:
-        super().__init__(
-            observation_space,
-            action_space,
-            n_tasks,
-            net_arch,
-            activation_fn,
-            n_critics,
-            optimizer_class,
-            optimizer_kwargs,
-        )
+        super().__init__(observation_space, action_space, **kwargs)
         self.critic_arch = critic_arch
         self.actor_kwargs = actor_kwargs or {}
         self.actor = self.actor_class(
-            self.state_dim, self.action_dim, n_tasks, self.arch("pi"), activation_fn, **self.actor_kwargs
+            self.state_dim, self.action_dim, self.n_tasks, self.arch("pi"), self.activation_fn, **self.actor_kwargs
         )
         self.actor.optimizer = self.make_optimizer(self.actor.parameters(), lr_schedule(1))
         self._build_critics(lr_schedule, critic_arch)

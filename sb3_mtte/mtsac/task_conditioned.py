@@ -13,7 +13,7 @@ Both see the state without the one-hot; the task enters through the network's pe
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any, ClassVar
+from typing import Any, ClassVar, NamedTuple
 
 import torch as th
 from gymnasium import spaces
@@ -24,8 +24,28 @@ from sb3_mtte.common.critics import MultiTaskCritic
 from sb3_mtte.common.policies import MultiTaskActor
 from sb3_mtte.mtsac.policies import MTSACPolicy
 
-NetworkFactory = Callable[[int, int, int, list[int], int, type[nn.Module]], nn.Module]
-"""``(n_copies, in_features, n_tasks, hidden_sizes, out_features, activation_fn) -> network``."""
+
+class NetworkShape(NamedTuple):
+    """What every task-conditioned network is built from, beside its structure's own arguments.
+
+    :param n_copies: number of independent networks C (1 actor, or the twin critics).
+    :param in_features: input size (the state, or state + action).
+    :param n_tasks: number of tasks N.
+    :param hidden_sizes: hidden widths.
+    :param out_features: output size.
+    :param activation_fn: activation between layers.
+    """
+
+    n_copies: int
+    in_features: int
+    n_tasks: int
+    hidden_sizes: list[int]
+    out_features: int
+    activation_fn: type[nn.Module]
+
+
+NetworkFactory = Callable[[NetworkShape], nn.Module]
+"""``shape -> network``."""
 
 
 def init_task_weights_(task_weights: th.Tensor) -> th.Tensor:
@@ -44,7 +64,7 @@ class TaskConditionedActor(MultiTaskActor):
 
     def __init__(self, state_dim, action_dim, n_tasks, net_arch, activation_fn, network: NetworkFactory) -> None:
         super().__init__(state_dim, action_dim, n_tasks)
-        self.net = network(1, state_dim, n_tasks, net_arch, 2 * action_dim, activation_fn)
+        self.net = network(NetworkShape(1, state_dim, n_tasks, net_arch, 2 * action_dim, activation_fn))
 
     def dist_params(self, obs: th.Tensor, task_ids: th.Tensor | None = None) -> th.Tensor:
         state = obs[..., : self.state_dim].unsqueeze(0)
@@ -101,9 +121,9 @@ class TaskConditionedPolicy(MTSACPolicy):
         """The structure's own arguments (number of experts, parameter sets, ...)."""
         return {}
 
-    def network(self, *args: Any) -> nn.Module:
-        """Build the structure: ``(n_copies, in_features, n_tasks, hidden_sizes, out_features, activation_fn)``."""
-        return self.network_class(*args, **self.network_kwargs())
+    def network(self, shape: NetworkShape) -> nn.Module:
+        """Build the structure in ``shape``."""
+        return self.network_class(shape, **self.network_kwargs())
 
     @property
     def actor_class(self):  # type: ignore[override]
@@ -112,8 +132,9 @@ class TaskConditionedPolicy(MTSACPolicy):
     def make_critic(self, critic_arch: str = "per_task") -> MultiTaskCritic | TaskConditionedCritic:  # type: ignore[override]
         if not self.structured_critic:
             return super().make_critic(critic_arch)
+        in_features = self.state_dim + self.action_dim
         net = self.network(
-            self.n_critics, self.state_dim + self.action_dim, self.n_tasks, self.arch("qf"), 1, self.activation_fn
+            NetworkShape(self.n_critics, in_features, self.n_tasks, self.arch("qf"), 1, self.activation_fn)
         )
         return TaskConditionedCritic(net, self.n_tasks, self.n_critics)
 

@@ -16,11 +16,21 @@ from sb3_mtte.common.update_hooks import NegativeTransferWeights, UpdateHook
 from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
 from sb3_mtte.mtsacte.callbacks import NegativeTransferLogCallback
+from sb3_mtte.mtsacte.checks import (
+    check_iteration,
+    check_n_select,
+    check_nt_chunk_size,
+    check_nt_estimator,
+    check_nt_measure,
+    check_per_task_critics,
+    check_rates,
+    check_policy_kwargs,
+    check_top_k,
+)
 from sb3_mtte.mtsacte.objectives import TaskSelection, select_tasks
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.probe import task_probe_accuracy
 from sb3_mtte.mtsacte.transfer import (
-    ESTIMATORS,
     RepresentationBatch,
     TaskObjectives,
     TransferStatistics,
@@ -28,7 +38,6 @@ from sb3_mtte.mtsacte.transfer import (
     transfer_matrix,
 )
 
-NT_MEASURES = ("per_batch", "mean", "significant")
 # Attributes holding the last recomputation's TaskSelection: tensors on the model's device, numpy in a checkpoint.
 SELECTION_ATTRIBUTES = ("transfer_matrix", "mu", "selected_tasks", "task_weights")
 
@@ -128,28 +137,14 @@ class MTSACTE(MTSAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        if policy_kwargs and "rep_learning_rate" in policy_kwargs:
-            raise ValueError(
-                "rep_learning_rate is an argument of MTSACTE (MTSACTE(..., rep_learning_rate=...)), "
-                "not of policy_kwargs."
-            )
-        if top_k < 1:
-            raise ValueError(f"top_k (K) must be at least 1, got {top_k}.")
-        if nt_estimator not in ESTIMATORS:
-            raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {nt_estimator!r}.")
-        if nt_step_size < 0 or c_vae < 0 or rep_learning_rate <= 0:
-            raise ValueError("nt_step_size and c_vae must be >= 0 and rep_learning_rate > 0.")
-        if not (nt_chunk_size in ("auto", None) or (isinstance(nt_chunk_size, int) and nt_chunk_size >= 1)):
-            raise ValueError(f"nt_chunk_size must be 'auto', None or a positive int, got {nt_chunk_size!r}.")
-        if nt_measure not in NT_MEASURES:
-            raise ValueError(f"nt_measure must be one of {NT_MEASURES}, got {nt_measure!r}.")
-        if iteration_length < 1 or rep_gradient_steps < 1:
-            raise ValueError("iteration_length (H) and rep_gradient_steps must be at least 1.")
-        if critic_arch != "per_task":
-            raise ValueError(
-                f"MTSACTE's critics are per task (critic_arch='per_task'), got {critic_arch!r}: a shared critic is "
-                "MTSAC(..., critic_arch='shared')."
-            )
+        check_policy_kwargs(policy_kwargs)
+        check_top_k(top_k)
+        check_nt_estimator(nt_estimator)
+        check_rates(nt_step_size, c_vae, rep_learning_rate)
+        check_nt_chunk_size(nt_chunk_size)
+        check_nt_measure(nt_measure)
+        check_iteration(iteration_length, rep_gradient_steps)
+        check_per_task_critics(critic_arch)
         replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
         super().__init__(
             policy,
@@ -181,11 +176,7 @@ class MTSACTE(MTSAC):
         )
         if self.env is not None:
             n_select = self.n_tasks // 2 if n_select is None else n_select
-            if not 1 <= n_select < self.n_tasks:
-                raise ValueError(
-                    f"n_select (M) must satisfy 1 <= M < N = {self.n_tasks}, got {n_select} (default N // 2 = "
-                    f"{self.n_tasks // 2})."
-                )
+            check_n_select(n_select, self.n_tasks)
         self.n_select = n_select
         self.top_k, self.use_topk, self.use_vae = top_k, use_topk, use_vae
         self.nt_step_size, self.c_vae, self.rep_learning_rate = nt_step_size, c_vae, rep_learning_rate
@@ -222,18 +213,6 @@ class MTSACTE(MTSAC):
         super()._create_aliases()
         self.encoder = self.policy.encoder
         self.decoder = self.policy.decoder
-
-    def _setup_learn(
-        self,
-        total_timesteps: int,
-        callback: MaybeCallback = None,
-        reset_num_timesteps: bool = True,
-        tb_log_name: str = "run",
-        progress_bar: bool = False,
-    ):
-        if reset_num_timesteps:
-            self._last_iteration = None
-        return super()._setup_learn(total_timesteps, callback, reset_num_timesteps, tb_log_name, progress_bar)
 
     def _init_callback(self, callback: MaybeCallback, progress_bar: bool = False) -> BaseCallback:
         """The user's callbacks, after a :class:`NegativeTransferLogCallback` that writes the records."""
@@ -392,4 +371,6 @@ class MTSACTE(MTSAC):
         reset_num_timesteps: bool = True,
         progress_bar: bool = False,
     ) -> SelfMTSACTE:
+        if reset_num_timesteps:
+            self._last_iteration = None  # the first update opens an iteration
         return super().learn(total_timesteps, callback, log_interval, tb_log_name, reset_num_timesteps, progress_bar)

@@ -9,7 +9,6 @@ from typing import Any
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
-from torch import nn
 
 from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.ensemble import mlp
@@ -60,10 +59,6 @@ class MTSACTEPolicy(MultiTaskPolicy):
     :param observation_space: flat Box: state followed by the N-dim one-hot.
     :param action_space: Box action space.
     :param lr_schedule: learning-rate schedule of the actor and critics.
-    :param n_tasks: number of tasks N.
-    :param net_arch: hidden widths of every network (2 x 400 by default, as in Appendix B), a list or
-        ``dict(pi=..., qf=..., embed=..., decoder=...)``.
-    :param activation_fn: activation function.
     :param z_dim: size of the representation z (8 in the paper).
     :param rep_learning_rate: learning rate of the encoder and decoder (J^rep).
     :param z_init_std: E_phi's standard deviation at initialisation (the bias of its log-std head is set to
@@ -74,10 +69,10 @@ class MTSACTEPolicy(MultiTaskPolicy):
         PyTorch's initialisation, where they start about 0.02 apart and z can lose the task).
     :param deterministic_z: what ``predict(deterministic=True)`` feeds the actor: ``"mean"``, E_phi's mean, or
         ``"sample"``, a sample of E_phi as in training.
-    :param n_critics: twin critics per task.
     :param critic_arch: must be ``"per_task"`` (kept for a uniform constructor with MTSAC).
-    :param optimizer_class: optimizer class.
-    :param optimizer_kwargs: optimizer keyword arguments (fused Adam by default).
+    :param kwargs: ``n_tasks``, ``net_arch`` (a list, or ``dict(pi=..., qf=..., embed=..., decoder=...)``),
+        ``activation_fn``, ``n_critics`` (twin critics per task), ``optimizer_class`` and ``optimizer_kwargs`` of
+        :class:`~sb3_mtte.common.policies.MultiTaskPolicy`.
     """
 
     def __init__(
@@ -85,18 +80,13 @@ class MTSACTEPolicy(MultiTaskPolicy):
         observation_space: spaces.Box,
         action_space: spaces.Box,
         lr_schedule: Schedule,
-        n_tasks: int = 1,
-        net_arch: list[int] | dict[str, list[int]] | None = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
         z_dim: int = 8,
         rep_learning_rate: float = 3e-4,
         z_init_std: float | None = 0.01,
         z_mean_init_gain: float = 50.0,
         deterministic_z: str = "mean",
-        n_critics: int = 2,
         critic_arch: str = "per_task",
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: dict[str, Any] | None = None,
+        **kwargs: Any,
     ) -> None:
         if critic_arch != "per_task":
             raise ValueError("MTSACTE uses one twin critic per task (critic_arch='per_task').")
@@ -106,19 +96,10 @@ class MTSACTEPolicy(MultiTaskPolicy):
             raise ValueError(f"z_mean_init_gain must be a positive factor, got {z_mean_init_gain}.")
         if deterministic_z not in DETERMINISTIC_Z:
             raise ValueError(f"deterministic_z must be one of {DETERMINISTIC_Z}, got {deterministic_z!r}.")
-        super().__init__(
-            observation_space,
-            action_space,
-            n_tasks,
-            net_arch,
-            activation_fn,
-            n_critics,
-            optimizer_class,
-            optimizer_kwargs,
-        )
+        super().__init__(observation_space, action_space, **kwargs)
         self.z_dim, self.rep_learning_rate = z_dim, rep_learning_rate
         self.z_init_std, self.z_mean_init_gain, self.deterministic_z = z_init_std, z_mean_init_gain, deterministic_z
-        act, state_dim, action_dim = activation_fn, self.state_dim, self.action_dim
+        act, state_dim, action_dim, n_tasks = self.activation_fn, self.state_dim, self.action_dim, self.n_tasks
         self.encoder = mlp(state_dim + n_tasks, self.arch("embed"), 2 * z_dim, act)
         with th.no_grad():
             self.encoder[-1].weight[:z_dim].mul_(z_mean_init_gain)
