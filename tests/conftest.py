@@ -3,10 +3,11 @@ multi-task env whose episode returns are known in advance."""
 
 from __future__ import annotations
 
-import sb3_mtte  # noqa: F401  # first: the package sets OpenMP's spin-wait before torch loads
+import sb3_mtte  # first: the package sets OpenMP's spin-wait before torch loads
 
 # isort: split
 
+import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +21,34 @@ from torch import nn
 
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.transfer import RepresentationBatch, TaskObjectives
+
+
+# ---------------------------------------------------------------------------------------------- install
+CHECKOUT = Path(__file__).resolve().parent.parent
+
+
+def checkout_install_problem() -> str | None:
+    """Why these tests cannot run, or None: they test this checkout, so ``sb3_mtte`` and its zoo configs (the
+    top-level ``zoo_configs/``, installed as ``sb3_mtte.zoo_configs``) must both come from it, as an editable
+    install gives them. A plain ``pip install .`` gives neither: the installed copy is tested, or, from the checkout,
+    the package is found without its configs."""
+    package = Path(sb3_mtte.__file__).resolve().parent
+    configs = importlib.util.find_spec("sb3_mtte.zoo_configs")
+    origin = None if configs is None or configs.origin is None else Path(configs.origin).resolve()
+    if package == CHECKOUT / "sb3_mtte" and origin is not None and origin.is_relative_to(CHECKOUT):
+        return None
+    found = "without its zoo configs" if package == CHECKOUT / "sb3_mtte" else f"from {package}"
+    return (
+        f"The tests need sb3_mtte installed from this checkout in editable mode; Python finds it {found}: run "
+        f'pip install -e ".[tests]" in {CHECKOUT} (pip install -e . at least), then the tests again.'
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Stop before collecting, with one line naming the install, when the checkout is not installed editable."""
+    problem = checkout_install_problem()
+    if problem is not None:
+        pytest.exit(problem, returncode=pytest.ExitCode.USAGE_ERROR)
 
 
 # --------------------------------------------------------------------------------------------- networks
@@ -220,7 +249,7 @@ TINY = [*QUIET_CPU, "--seed", "3"]
 
 def tiny_train(log_dir: Path, algo: str = "mtsacte", *extra: str, steps: int = 400) -> Path:
     """Train ``algo`` on the 4-task toy for ``steps`` env steps with the zoo; return the run folder."""
-    from sb3_mtte.zoo import main
+    from sb3_mtte.experiments.cli import main
 
     main(
         [

@@ -90,12 +90,11 @@ def test_evaluate_cli_writes_json(zoo_runs, capsys):
     assert json.loads((zoo_runs / "mtsac_mt" / f"{ENV}_1" / "success.json").read_text())["algorithm"] == "MTSAC"
 
 
-def test_evaluate_needs_an_env_without_run_info(tmp_path, zoo_runs, capsys):
+def test_evaluate_reads_the_tasks_of_a_model_without_run_info(tmp_path, zoo_runs, capsys):
     model = tmp_path / "model.zip"
     model.write_bytes((zoo_runs / "mtsac_mt" / f"{ENV}_1" / f"{ENV}.zip").read_bytes())
-    with pytest.raises(SystemExit) as exit_info:
-        evaluate.main([str(model)])
-    assert exit_info.value.code == 2 and "pass --env" in capsys.readouterr().err
+    record = evaluate.main([str(model), "--episodes", "1", "--out", str(tmp_path / "r.json")])
+    assert record["env_id"] == ENV and "the tasks of its checkpoint" in capsys.readouterr().err
     evaluate.main([str(model), "--env", ENV, "--episodes", "1", "--out", str(tmp_path / "r.json")])
     assert json.loads((tmp_path / "r.json").read_text())["benchmark"] == ENV
 

@@ -24,7 +24,8 @@ Usage::
     sb3-mtte compare docs/records --benchmark MT10-100k    # two algorithms, as fixed before the runs
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
 
-``sb3-mtte <command> --help`` describes a command's options.
+``sb3-mtte <command> --help`` describes a command's options. Ctrl-C ends any command with one line and exit status
+130; output paths and devices are checked before any work starts.
 
 What ``train`` adds to rl-zoo3: the package's zoo keys (:mod:`~sb3_mtte.experiments.variants`) in ``rl_zoo3.ALGOS``
 with their hyperparameters (:mod:`~sb3_mtte.experiments.zoo.configs`); the benchmarks' env ids, one sub-env per task
@@ -38,17 +39,20 @@ writes one video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import difflib
 import importlib
+import multiprocessing
 import os
 import re
 import sys
+import tempfile
 import textwrap
 import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 from sb3_mtte.experiments.extras import require_extra
 
@@ -99,27 +103,67 @@ def closed_pipe_exit(main: Callable[[], Any]) -> Any:
 
 
 def device_error(flag: str, device: str | None) -> str | None:
-    """Why ``device`` is no torch device (``--device gpu``), or None: SB3's ``auto`` and any name torch takes."""
+    """Why ``device`` cannot run here, or None: a name torch does not take (``--device gpu``), or a CUDA or MPS
+    device this machine lacks (SB3 would fall back to the CPU without a word). SB3's ``auto`` is always fine."""
     import torch as th
 
     if device in (None, "auto"):
         return None
     try:
-        th.device(device)
+        chosen = th.device(device)
     except (RuntimeError, TypeError):
         return f"{flag} {device}: not a torch device; give auto, cpu, cuda or cuda:<index>."
+    if chosen.type == "cuda":
+        return _cuda_error(flag, device, chosen.index)
+    if chosen.type == "mps" and not th.backends.mps.is_available():
+        return f"{flag} {device}: MPS is not available on this machine; give {flag} cpu or {flag} auto."
+    return None
+
+
+def _cuda_error(flag: str, device: str, index: int | None) -> str | None:
+    import torch as th
+
+    if not th.cuda.is_available():
+        return f"{flag} {device}: CUDA is not available on this machine; give {flag} cpu or {flag} auto."
+    count = th.cuda.device_count()
+    if index is not None and index >= count:
+        devices = "cuda:0" if count == 1 else f"cuda:0 to cuda:{count - 1}"
+        return f"{flag} {device}: this machine's CUDA devices are {devices}; give one of them, or {flag} auto."
     return None
 
 
 def output_folder_error(flag: str, path: str | Path) -> str | None:
-    """Why ``path`` cannot be the output folder of ``flag`` (an existing file), or None."""
-    return f"{flag} {path} is a file: give a folder." if Path(path).is_file() else None
+    """Why ``path`` cannot be the output folder of ``flag``, or None: an existing file, a file on the way to it, or
+    a place where nothing can be written (checked by writing there, before any work)."""
+    if Path(path).is_file():
+        return f"{flag} {path} is a file: give a folder."
+    return unwritable_error(flag, path, Path(path))
 
 
 def output_file_error(flag: str, path: str | Path) -> str | None:
-    """Why ``path`` cannot be the output file of ``flag`` (an existing folder, or a name ending in a slash), or None."""
+    """Why ``path`` cannot be the output file of ``flag``, or None: an existing folder, a name ending in a slash, a
+    file on the way to it, or a folder where nothing can be written (checked by writing there, before any work)."""
     if Path(path).is_dir() or str(path).endswith(("/", "\\")):
         return f"{flag} {path} is a folder: give a file path (e.g. {Path(path) / 'success.json'})."
+    return unwritable_error(flag, path, Path(path).parent)
+
+
+def unwritable_error(flag: str, given: str | Path, folder: Path) -> str | None:
+    """Why ``folder`` (the output folder of ``flag``, or the folder of its output file ``given``) cannot be made
+    and written, or None. Its nearest existing folder must take a new file: one is made there and removed, so the
+    answer holds for every user, root included, and every file system."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        return f"{flag} {given}: {existing} is a file, not a folder; give a path in a folder."
+    try:
+        handle, probe = tempfile.mkstemp(prefix=".sb3_mtte_write_check_", dir=existing)
+    except OSError as error:
+        reason = error.strerror or type(error).__name__
+        return f"{flag} {given}: nothing can be written in {existing} ({reason}); give a folder you can write to."
+    os.close(handle)
+    os.remove(probe)
     return None
 
 
@@ -205,11 +249,36 @@ def main(argv: Sequence[str] | None = None, prog: str | None = None) -> Any:
 def console_main() -> None:
     """The ``sb3-mtte`` console script and ``python -m sb3_mtte``: the package's process settings, then
     :func:`main`, with exit status 0 on success (the script's wrapper exits with the returned value, and a
-    command's return value is for callers in Python)."""
+    command's return value is for callers in Python). Ctrl-C ends any command at once with one line and exit
+    status 130, as a shell expects (:func:`interrupted_exit`)."""
     from sb3_mtte.process import tune_process
 
     tune_process(spin_count="torch" not in sys.modules)  # a fresh command process: torch is not loaded yet
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        interrupted_exit(sys.argv[1:2])
+
+
+INTERRUPTED_STATUS = 130
+"""Exit status of a command stopped by Ctrl-C (128 + SIGINT, as a shell reports it)."""
+
+
+def interrupted_exit(command: Sequence[str]) -> NoReturn:
+    """End the process stopped by Ctrl-C: one line naming the command, then exit status :data:`INTERRUPTED_STATUS`
+    at once. The exit skips the interpreter's shutdown, which joins threads and sub-env processes and can take
+    seconds. The sub-env processes leave Ctrl-C to the command
+    (:class:`~sb3_mtte.experiments.env_ids.MultiTaskVecEnvFactory`), which ends them first: they would otherwise
+    print the traceback of their closed pipe."""
+    name = command_prog(command[0]) if command and command[0] in COMMANDS else program_name()
+    for child in multiprocessing.active_children():
+        with contextlib.suppress(OSError, ValueError):
+            child.terminate()
+    with contextlib.suppress(OSError, ValueError):
+        sys.stdout.flush()
+    with contextlib.suppress(OSError, ValueError):
+        print(f"{name}: interrupted (Ctrl-C)", file=sys.stderr, flush=True)
+    os._exit(INTERRUPTED_STATUS)
 
 
 __all__ = [
@@ -219,8 +288,10 @@ __all__ = [
     "command_prog",
     "console_main",
     "device_error",
+    "interrupted_exit",
     "main",
     "output_file_error",
     "output_folder_error",
     "program_name",
+    "unwritable_error",
 ]

@@ -1,25 +1,28 @@
 """Env ids of the benchmarks and the VecEnv "class" that makes sub-env i run task i.
 
 Env ids ``MT10``, ``MT20``, ``MT25``, ``MT50``, ``DEV6`` (the development benchmark), ``toy-conflict``, ``toy-agree``
-(and ``toy-conflict-<N>``), any list of Meta-World v3 env names joined by ``_`` (``reach-v3_push-v3``), each also with
-a budget suffix (``MT10-smoke``): the suffix picks another entry of the hyperparameter file and names the run folder,
-the benchmark is the same. rl-zoo builds every sub-env with the same constructor; :class:`MultiTaskVecEnvFactory` (the
-role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's ``--vec-env`` choice inside) tells constructor i which
-task to build.
+(and ``toy-conflict-<N>`` with N >= 2, ``toy-agree-<N>`` with N >= 1), any list of Meta-World v3 env names joined by
+``_`` (``reach-v3_push-v3``), each also with a budget suffix (``MT10-smoke``): the suffix picks another entry of the
+hyperparameter file and names the run folder, the benchmark is the same. rl-zoo builds every sub-env with the same
+constructor; :class:`MultiTaskVecEnvFactory` (the role of ``ExperimentManager.default_vec_env_cls``, with rl-zoo's
+``--vec-env`` choice inside) tells constructor i which task to build.
 """
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import os
+import signal
 from collections.abc import Callable, Sequence
 from typing import Any
 
 import gymnasium as gym
-from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+from stable_baselines3.common.vec_env import DummyVecEnv, SubprocVecEnv, VecEnv
 
-from sb3_mtte.envs import TOY_BENCHMARKS, make_env_fns
-from sb3_mtte.envs.metaworld_envs import is_task_list, metaworld_task_names
+from sb3_mtte.common.utils import did_you_mean
+from sb3_mtte.envs import MT50_TASKS, TOY_BENCHMARKS, make_env_fns
+from sb3_mtte.envs.metaworld_envs import TASK_LIST_SEPARATOR, is_task_list, metaworld_task_names
 from sb3_mtte.envs.toy import parse_toy_name
 
 BUDGET_SUFFIXES = ("smoke", "cpu", "100k")
@@ -40,16 +43,19 @@ def benchmark_task_names(benchmark: str) -> list[str]:
     """Task names of a benchmark name (``"MT10"``, ``"toy-conflict-6"``, ``"reach-v3_push-v3"``, ...), without
     building any env.
 
-    :raises ValueError: for an unknown benchmark, or a task list with an unknown name (naming the nearest ones).
+    :raises ValueError: for an unknown benchmark (naming the nearest env id), a toy with too few tasks, or a task
+        list with an unknown name (naming the nearest ones).
     """
 
     toy = parse_toy_name(benchmark)
     if toy is not None:
+        if toy[1] < TOY_MIN_TASKS[toy[0]]:
+            raise ValueError(_toy_count_problem(*toy))
         return TOY_BENCHMARKS[toy[0]](toy[1])[0]
     task_names = metaworld_task_names(benchmark)
     if task_names is not None:
         return task_names
-    raise ValueError(f"Unknown benchmark {benchmark!r}: use {benchmark_help()}")
+    raise ValueError(f"Unknown benchmark {benchmark!r}: {benchmark_help(benchmark)}")
 
 
 def env_id_n_tasks(env_id: str) -> int:
@@ -57,19 +63,68 @@ def env_id_n_tasks(env_id: str) -> int:
     return len(benchmark_task_names(split_env_id(env_id)[0]))
 
 
-def benchmark_help(env_id: str | None = None) -> str:
-    """The env ids the launcher accepts, in words; for a task list ``env_id`` with an unknown name, the nearest
-    valid names instead."""
-    if env_id is not None and is_task_list(split_env_id(env_id)[0]):
+TOY_MIN_TASKS = {"toy-conflict": 2, "toy-agree": 1}
+"""The fewest tasks of each toy benchmark: ``toy-conflict`` needs a task that agrees and the one that conflicts."""
+
+
+def _toy_count_problem(toy: str, n_tasks: int) -> str:
+    return (
+        f"{toy} has at least {TOY_MIN_TASKS[toy]} tasks, not {n_tasks}: give {toy}-<N> with N >= {TOY_MIN_TASKS[toy]}."
+    )
+
+
+def standard_env_ids() -> list[str]:
+    """Every env id of :data:`STANDARD_BENCHMARKS`, each without and with every budget suffix."""
+    return [f"{benchmark}{suffix}" for benchmark in STANDARD_BENCHMARKS for suffix in ("", *_SUFFIXES)]
+
+
+_SUFFIXES = tuple(f"-{suffix}" for suffix in BUDGET_SUFFIXES)
+
+
+def env_id_problem(env_id: str) -> str | None:
+    """What is wrong with an env id that names no benchmark, in one sentence, or None when there is nothing to say
+    beyond the valid forms: the nearest env id (``MT10-smok``: ``MT10-smoke``), the fewest tasks of a toy
+    (``toy-conflict-1``), or the unknown names of a task list."""
+    benchmark = split_env_id(env_id)[0]
+    toy = parse_toy_name(benchmark)
+    if toy is not None and toy[1] < TOY_MIN_TASKS[toy[0]]:
+        return _toy_count_problem(*toy)
+    if is_task_list(benchmark):
         try:
-            metaworld_task_names(split_env_id(env_id)[0])
+            metaworld_task_names(benchmark)
         except ValueError as error:
             return str(error)
-    return (
-        "MT10, MT20, MT25, MT50, DEV6, toy-conflict, toy-agree, toy-<conflict|agree>-<N> or Meta-World v3 env names "
-        "joined by '_' (reach-v3_push-v3), optionally with a budget suffix "
-        f"({', '.join('-' + s for s in BUDGET_SUFFIXES)})."
+    return did_you_mean(env_id, standard_env_ids()) or None
+
+
+def benchmark_help(env_id: str | None = None) -> str:
+    """The env ids the launcher accepts, in words; for an ``env_id`` that names no benchmark, what is wrong with it
+    first (:func:`env_id_problem`): the nearest env id, a toy's fewest tasks, a task list's unknown names."""
+    problem = None if env_id is None else env_id_problem(env_id)
+    forms = (
+        "MT10, MT20, MT25, MT50, DEV6, toy-conflict, toy-agree, toy-conflict-<N> (N >= 2), toy-agree-<N> (N >= 1) "
+        "or Meta-World v3 env names joined by '_' (reach-v3_push-v3), optionally with a budget suffix "
+        f"({', '.join(_SUFFIXES)})."
     )
+    if problem is not None and is_task_list(split_env_id(env_id or "")[0]):
+        return problem
+    return forms if problem is None else f"{problem} The env ids: {forms}"
+
+
+def env_id_of_tasks(task_names: Sequence[str]) -> str | None:
+    """The benchmark whose tasks are ``task_names`` in this order (a checkpoint's), or None: a standard benchmark
+    (``MT10``), a toy with its task count (``toy-conflict-6``; ``toy-conflict`` for the default 4), or Meta-World v3
+    env names joined by ``_``."""
+    names = list(task_names)
+    for benchmark in STANDARD_BENCHMARKS:
+        if benchmark_task_names(benchmark) == names:
+            return benchmark
+    for toy, minimum in TOY_MIN_TASKS.items():
+        if len(names) >= minimum and TOY_BENCHMARKS[toy](len(names))[0] == names:
+            return f"{toy}-{len(names)}"
+    if names and all(name in MT50_TASKS for name in names) and len(set(names)) == len(names):
+        return TASK_LIST_SEPARATOR.join(names)
+    return None
 
 
 _ENTRY_POINT = "sb3_mtte.experiments.env_ids:make_task_env"
@@ -133,12 +188,17 @@ def register_standard_env_ids() -> None:
 
 
 class _TaskEnvFn:
-    """Picklable constructor that builds sub-env ``task_index`` by calling a zoo env constructor in context."""
+    """Picklable constructor that builds sub-env ``task_index`` by calling a zoo env constructor in context; in a
+    process of its own (``own_process``), that process leaves Ctrl-C to the command, which ends it by closing its
+    pipe (a terminal sends Ctrl-C to every process of the command)."""
 
-    def __init__(self, env_fn: Callable[[], gym.Env], task_index: int, seed: int) -> None:
-        self.env_fn, self.task_index, self.seed = env_fn, task_index, seed
+    def __init__(self, env_fn: Callable[[], gym.Env], task_index: int, seed: int, own_process: bool = False) -> None:
+        self.env_fn, self.task_index, self.seed, self.own_process = env_fn, task_index, seed, own_process
 
     def __call__(self) -> gym.Env:
+        if self.own_process:
+            with contextlib.suppress(ValueError):  # signal handlers belong to the main thread
+                signal.signal(signal.SIGINT, signal.SIG_IGN)
         token = _TASK_CONTEXT.set((self.task_index, self.seed))
         try:
             return self.env_fn()
@@ -192,6 +252,7 @@ class MultiTaskVecEnvFactory:
                 f"This benchmark has {self.n_tasks} tasks and needs one sub-env per task; got {len(env_fns)} "
                 f"sub-envs (use n_envs={self.n_tasks}, or --n-envs {self.n_tasks} for enjoy)."
             )
-        fns = [_TaskEnvFn(fn, i, self.seed) for i, fn in enumerate(env_fns)]
+        own_process = isinstance(self.vec_env_cls, type) and issubclass(self.vec_env_cls, SubprocVecEnv)
+        fns = [_TaskEnvFn(fn, i, self.seed, own_process) for i, fn in enumerate(env_fns)]
         env = self.vec_env_cls(fns, **vec_env_kwargs)  # type: ignore[arg-type]
         return env if self.wrapper is None else self.wrapper(env)

@@ -6,15 +6,16 @@ Usage::
 
 MODEL is a checkpoint of MTSAC or MTSACTE (the class is read from the zip). Each task runs ``--episodes``
 episodes, one per goal variation in order, with deterministic actions (:func:`sb3_mtte.evaluate_success`).
-The env and the benchmark seed default to those of the run folder holding the model (its ``run_info.json``),
-else seed 0; the run's Meta-World reward functions are kept (they decide success in some tasks). An env id with a
-budget suffix (``MT10-smoke``) names its benchmark (``MT10``). An ``--env`` whose tasks are not the model's
-(``toy-agree`` for a ``toy-conflict`` model) is refused unless ``--other-benchmark`` is given, which evaluates it
-there with a warning.
+The env and the benchmark seed default to those of the run folder holding the model (its ``run_info.json``); a
+model outside its run folder is evaluated on the tasks its checkpoint names, with seed 0. The run's Meta-World
+reward functions are kept (they decide success in some tasks). An env id with a budget suffix (``MT10-smoke``)
+names its benchmark (``MT10``). An ``--env`` whose tasks are not the model's (``toy-agree`` for a ``toy-conflict``
+model) is refused unless ``--other-benchmark`` is given, which evaluates it there with a warning.
 
-The per-task table is printed and written as JSON beside the model: ``success.json`` for the run's final
-model, ``success_<model name>.json`` for any other file (checkpoints, ``best_model.zip``), and
-``success_<model name>_on_<env id>.json`` for an evaluation on another benchmark (never read as the run's final).
+The output path is checked before the evaluation starts. The per-task table is printed and written as JSON beside
+the model: ``success.json`` for the run's final model, ``success_<model name>.json`` for any other file
+(checkpoints, ``best_model.zip``), and ``success_<model name>_on_<env id>.json`` for an evaluation on another
+benchmark (never read as the run's final).
 """
 
 from __future__ import annotations
@@ -37,7 +38,7 @@ from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.cli import command_prog, device_error, output_file_error
-from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
+from sb3_mtte.experiments.env_ids import benchmark_task_names, env_id_of_tasks, split_env_id
 from sb3_mtte.experiments.zoo.run_checkpoints import load_model
 
 
@@ -93,13 +94,16 @@ def evaluate_model(
     model_path = Path(model_path)
     data = _checkpoint_data(model_path)
     info = run_info.read_run_info(model_path.parent) or {}
-    env_id = env or info.get("env_id")
-    if env_id is None:
-        raise ValueError(f"No run_info.json beside {model_path}: pass --env.")
+    env_id = env or info.get("env_id") or _env_id_of_checkpoint(model_path, data, seed)
+    check_counts(episodes, seed)
     benchmark = _benchmark_of(env_id)
     seed = int(info.get("benchmark_seed", 0)) if seed is None else seed
     _check_task_count(model_path, data, env_id, benchmark)
     elsewhere = _check_benchmark(model_path, data, info, env_id, benchmark, other_benchmark)
+    out_path = Path(out) if out is not None else default_output_path(model_path, info, env_id if elsewhere else None)
+    problem = output_file_error("--out", out_path)
+    if problem:
+        raise ValueError(problem)
     model = _load_model_of_run(model_path, info, device)
     version = info.get("reward_function_version")
     env_kwargs = {} if version is None else {"reward_function_version": version}
@@ -134,7 +138,6 @@ def evaluate_model(
         "evaluation_seconds": round(time.time() - start, 2),
         "time": run_info.now(),
     }
-    out_path = Path(out) if out is not None else default_output_path(model_path, info, env_id if elsewhere else None)
     _report(record, result, out_path)
     return record
 
@@ -155,11 +158,12 @@ def task_progress(task_names: Sequence[str], episodes: int, enabled: bool) -> It
 
 
 def evaluation_title(record: dict[str, Any]) -> str:
-    """The header of an evaluation's table: model, benchmark, seed, steps, episodes and Meta-World's reward
-    functions (a benchmark's success differs between them)."""
+    """The header of an evaluation's table: model, env id (the run's, e.g. ``MT10-smoke``), benchmark seed, steps,
+    episodes and Meta-World's reward functions (a benchmark's success differs between them)."""
+    episodes, env_id = record["episodes_per_task"], record.get("env_id") or record["benchmark"]
     title = (
-        f"{record['label'] or record['algorithm']} on {record['benchmark']} (seed {record['seed']}), "
-        f"{record['timesteps']} steps, {record['episodes_per_task']} episodes per task"
+        f"{record['label'] or record['algorithm']} on {env_id} (seed {record['seed']}), "
+        f"{record['timesteps']} steps, {episodes} episode{'' if episodes == 1 else 's'} per task"
     )
     version = record.get("reward_function_version")
     return title if version is None else f"{title}, Meta-World reward functions {version}"
@@ -171,6 +175,28 @@ def _report(record: dict[str, Any], result: SuccessResult, out_path: Path) -> No
     out_path.write_text(json.dumps(record, indent=2) + "\n")
     print(format_table(result, evaluation_title(record)))
     print(f"\nWritten to {out_path}")
+
+
+def check_counts(episodes: int, seed: int | None) -> None:
+    """Refuse no episode and a negative benchmark seed, naming the flag, before anything is drawn."""
+    if isinstance(episodes, bool) or not isinstance(episodes, int) or episodes < 1:
+        raise ValueError(f"--episodes {episodes}: give at least 1 episode per task (e.g. --episodes 50).")
+    if seed is not None and not 0 <= seed < 2**32:
+        raise ValueError(f"--seed {seed}: the benchmark seed is an int from 0 to 2**32 - 1, e.g. --seed 0.")
+
+
+def _env_id_of_checkpoint(model_path: Path, data: dict[str, Any], seed: int | None) -> str:
+    """The benchmark of a model without its run folder, read from the task names its checkpoint holds."""
+    task_names = data.get("task_names")
+    env_id = None if not task_names else env_id_of_tasks(task_names)
+    if env_id is None:
+        raise ValueError(f"No run_info.json beside {model_path}, and its checkpoint names no benchmark: pass --env.")
+    print(
+        f"No run_info.json beside {model_path}: evaluating on {env_id}, the tasks of its checkpoint, with benchmark "
+        f"seed {0 if seed is None else seed} (--env and --seed choose others).",
+        file=sys.stderr,
+    )
+    return env_id
 
 
 def _benchmark_of(env_id: str) -> str | list[str]:
@@ -257,6 +283,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parser.parse_args(list(sys.argv[1:] if argv is None else argv))
     out_error = None if args.out is None else output_file_error("--out", args.out)
     out_error = device_error("--device", args.device) or out_error
+    try:
+        check_counts(args.episodes, args.seed)
+    except ValueError as error:
+        out_error = str(error)
     if out_error:
         parser.exit(2, f"{parser.prog}: error: {out_error}\n")
     try:

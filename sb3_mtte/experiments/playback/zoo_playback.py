@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 from collections.abc import Sequence
 from pathlib import Path
@@ -26,7 +27,7 @@ from sb3_mtte.experiments.playback.episode_reporter import EpisodeReporter
 from sb3_mtte.experiments.playback.video import record_task_videos, record_tiled_video
 from sb3_mtte.experiments.zoo.adapter import run_enjoy
 from sb3_mtte.experiments.zoo.launcher import flag_value, has_flag, register_algos
-from sb3_mtte.experiments.zoo.parsers import ENJOY_DESCRIPTION, CheckedStoreDict, zoo_parser
+from sb3_mtte.experiments.zoo.parsers import ENJOY_DESCRIPTION, CheckedStoreDict, ZooParser
 from sb3_mtte.experiments.zoo.run_checkpoints import latest_run_with_model, load_model
 
 
@@ -98,7 +99,7 @@ def enjoy(argv: Sequence[str]) -> None:
     if has_flag(argv, "-h", "--help"):
         _run_zoo_enjoy(argv, MultiTaskVecEnvFactory(1))
     if env_id is None or not register_env_id(env_id):
-        raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+        raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help(env_id)}")
     problem = device_error("--device", flag_value(argv, "--device"))
     if problem:
         raise SystemExit(problem)
@@ -118,10 +119,27 @@ def enjoy(argv: Sequence[str]) -> None:
     _run_zoo_enjoy(argv, factory)
 
 
+ENJOY_STEPS_HELP = (
+    "vector steps: each steps every task once, so N tasks take N env steps (train's -n counts env steps over all "
+    "tasks; default 1000)"
+)
+
+
+class EnjoyParser(ZooParser):
+    """rl-zoo's enjoy parser as :class:`~sb3_mtte.experiments.zoo.parsers.ZooParser` shows it, its ``-n`` described
+    in vector steps (rl-zoo's enjoy loop), apart from ``train``'s env steps over all tasks."""
+
+    def add_argument(self, *names: Any, **kwargs: Any) -> argparse.Action:
+        if "-n" in names:
+            kwargs["help"] = ENJOY_STEPS_HELP
+        return super().add_argument(*names, **kwargs)
+
+
 def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
     """Run rl-zoo's ``enjoy()`` with its envs built by ``factory``, and a parser that shows what it does and the
     package's zoo keys."""
-    run_enjoy(argv, factory, zoo_parser(ENJOY_DESCRIPTION, prog=command_prog("enjoy")))
+    make_parser = functools.partial(EnjoyParser, prog=command_prog("enjoy"), description=ENJOY_DESCRIPTION)
+    run_enjoy(argv, factory, make_parser)
 
 
 def _record_video_parser() -> argparse.ArgumentParser:
@@ -158,7 +176,7 @@ def record_video(argv: Sequence[str]) -> list[Path]:
     if not os.environ.get("DISPLAY") and "MUJOCO_GL" not in os.environ:
         os.environ["MUJOCO_GL"] = "egl"
     if not register_env_id(args.env):
-        raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help()}")
+        raise SystemExit(f"--env must be a benchmark of sb3_mtte: {benchmark_help(args.env)}")
     problem = device_error("--device", args.device)
     if problem:
         raise SystemExit(problem)
@@ -213,4 +231,4 @@ def _saved_env_kwargs(log_path: str, env_id: str) -> dict[str, Any]:
     return dict(loaded.get("env_kwargs") or {})
 
 
-__all__ = ["enjoy", "locate_model", "record_video"]
+__all__ = ["EnjoyParser", "enjoy", "locate_model", "record_video"]

@@ -7,7 +7,9 @@
 - :mod:`~sb3_mtte.experiments.results.tables`: Table 1 and the tables of results;
 - :mod:`~sb3_mtte.experiments.results.bellman_table`: the soft Bellman error table;
 - :mod:`~sb3_mtte.experiments.results.figures`, :mod:`~sb3_mtte.experiments.results.summary_figures`: the figures;
+- :mod:`~sb3_mtte.experiments.results.figure_layout`: what the figures share (options, styles, panels and labels);
 - :mod:`~sb3_mtte.experiments.results.compare`: the pre-registered comparison (``compare``);
+- :mod:`~sb3_mtte.experiments.results.runaways`: the runs whose soft Bellman error ran away (for ``compare``);
 - :mod:`~sb3_mtte.experiments.results.plot`: every figure and table of a folder (``plot``).
 
 None of them imports rl-zoo3.

@@ -9,6 +9,7 @@ import numpy as np
 
 from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments.results.runs import Run, table_order, task_scalar
+from sb3_mtte.experiments.results.statistics import seed_cell
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 BELLMAN_NOTE = (
@@ -60,8 +61,10 @@ def window_peaks(steps: np.ndarray, losses: np.ndarray, edges: Sequence[float]) 
     return peaks
 
 
-def _loss(value: float) -> str:
-    return f"{value:,.0f}" if value >= 100 else f"{value:.3g}"
+def loss_text(value: float) -> str:
+    """A critic loss in every table (the Bellman table, the comparison's runaways): from 100 up with one decimal and
+    thousands separated (``1,692.2``), below 100 to three significant digits (``0.0776``)."""
+    return f"{value:,.1f}" if abs(value) >= 100 else f"{value:.3g}"
 
 
 def _thousands(env_steps: float) -> str:
@@ -82,11 +85,11 @@ def _clip(run: Run) -> str:
 
 def _row(run: Run, steps: np.ndarray, losses: np.ndarray, edges: np.ndarray) -> list[str]:
     names = [short_task_name(name) for name in run.task_names]
-    cells = [run.label, "-" if run.seed is None else str(run.seed)]
+    cells = [run.label, seed_cell(run)]
     for peak in window_peaks(steps, losses, list(edges)):
-        cells.append("-" if peak is None else f"{_loss(peak[0])} {names[peak[1]]}")
+        cells.append("-" if peak is None else f"{loss_text(peak[0])} {names[peak[1]]}")
     point, task = np.unravel_index(int(np.argmax(losses)), losses.shape)
-    return [*cells, f"{_loss(float(losses[point, task]))} {names[task]}", _clip(run)]
+    return [*cells, f"{loss_text(float(losses[point, task]))} {names[task]}", _clip(run)]
 
 
 def bellman_table(bench: str, groups: dict[str, list[Run]]) -> str | None:

@@ -6,14 +6,18 @@ Usage::
 
     sb3-mtte compare SOURCE [SOURCE ...] --benchmark MT10-100k [--a Ours] [--b SAC-MT]
                      [--replication-seeds 3 4 5 6 7] [--runaway-loss 100] [--fell 0.2] [--out FILE]
+                     [--include-unfinished]
 
 A benchmark with a registered comparison (:data:`PREREGISTERED`) takes its algorithms, seeds and criterion from it;
-the flags override them. Only runs with a final evaluation count.
+the flags override them. Only runs with a final evaluation count; a run that did not finish is left out, named in
+one line, unless ``--include-unfinished`` is given (the tables then mark it). Welch's t is undefined when every run
+of both algorithms has the same success, and the tables say so.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -22,20 +26,31 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from sb3_mtte.common.utils import short_task_name
 from sb3_mtte.experiments.cli import command_prog, output_file_error
-from sb3_mtte.experiments.results.bellman_table import critic_losses, evaluation_steps, window_names, window_peaks
+from sb3_mtte.experiments.results.bellman_table import window_names
 from sb3_mtte.experiments.results.figures import safe_name
 from sb3_mtte.experiments.results.records import load_runs
-from sb3_mtte.experiments.results.runs import Run, group_runs, success_curve
+from sb3_mtte.experiments.results.runaways import (
+    Runaway,
+    fisher_line,
+    ran_away,
+    runaway,
+    runaway_rows,
+    runaways,
+    window_edges,
+)
+from sb3_mtte.experiments.results.runs import Run, group_runs
 from sb3_mtte.experiments.results.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
     Estimate,
     aggregate_estimates,
+    count_cell,
     final_task_scores,
     has_final_evaluation,
     improvement_probabilities,
+    leave_out_unfinished,
+    unfinished,
 )
 
 DIFFERENCE_REPS = 10_000
@@ -61,7 +76,8 @@ PREREGISTERED: dict[str, Comparison] = {"MT10-100k": Comparison(replication_seed
 
 @dataclass(frozen=True)
 class MeanDifference:
-    """``mean(a) - mean(b)`` over runs with its percentile-bootstrap interval, and Welch's t test."""
+    """``mean(a) - mean(b)`` over runs with its percentile-bootstrap interval, and Welch's t test (``t``, ``df`` and
+    ``p`` NaN when every run of each algorithm has the same success: the test is undefined without variance)."""
 
     value: float
     low: float
@@ -69,6 +85,14 @@ class MeanDifference:
     t: float
     df: float
     p: float
+
+    @property
+    def welch_defined(self) -> bool:
+        return math.isfinite(self.t)
+
+
+WELCH_UNDEFINED = "undefined: no variance"
+"""Welch's t when every run of both algorithms has the same success (its denominator, their spread, is 0)."""
 
 
 def mean_difference(a: np.ndarray, b: np.ndarray, reps: int = DIFFERENCE_REPS, seed: int = 0) -> MeanDifference:
@@ -79,10 +103,14 @@ def mean_difference(a: np.ndarray, b: np.ndarray, reps: int = DIFFERENCE_REPS, s
     draws_a = a[rng.integers(0, len(a), size=(reps, len(a)))].mean(axis=1)
     draws_b = b[rng.integers(0, len(b), size=(reps, len(b)))].mean(axis=1)
     low, high = np.percentile(draws_a - draws_b, [2.5, 97.5])
+    value = float(a.mean() - b.mean())
+    if np.ptp(a) == 0 and np.ptp(b) == 0:  # Welch's t divides by the runs' spread: undefined, not computed
+        return MeanDifference(value, float(low), float(high), math.nan, math.nan, math.nan)
     var_a, var_b = a.var(ddof=1) / len(a), b.var(ddof=1) / len(b)
     df = (var_a + var_b) ** 2 / (var_a**2 / (len(a) - 1) + var_b**2 / (len(b) - 1))
-    t, p = stats.ttest_ind(a, b, equal_var=False)
-    return MeanDifference(float(a.mean() - b.mean()), float(low), float(high), float(t), float(df), float(p))
+    t = value / math.sqrt(var_a + var_b)
+    p = 2 * stats.t.sf(abs(t), df)
+    return MeanDifference(value, float(low), float(high), float(t), float(df), float(p))
 
 
 def fixed_reading(diff: MeanDifference, cmp: Comparison) -> str:
@@ -99,48 +127,11 @@ def _reading_sentence(a: list[Run], b: list[Run], diff: MeanDifference | None, c
     """The replication's answer under the fixed reading, said to be provisional while a seed has no finished run."""
     seeds = cmp.replication_seeds
     found = "too few runs for an interval" if diff is None else fixed_reading(diff, cmp)
-    done = [len(set(seeds) & {run.seed for run in runs}) for runs in (a, b)]
+    done = [len(set(seeds) & {run.seed for run in runs if not unfinished(run)}) for runs in (a, b)]
     if min(done) < len(seeds):
         found += f"; {cmp.a} has finished {done[0]} of its {len(seeds)} runs and {cmp.b} {done[1]}, so this is not "
         found += "the answer yet"
     return f"Reading fixed before the runs, on {_replication_name(cmp)}: {found}."
-
-
-@dataclass(frozen=True)
-class Runaway:
-    """A run's largest window-mean critic loss (and its task), its first window above the criterion (None when it
-    stayed below), and the runaway task's best in-training success up to that window's end and final success."""
-
-    peak: float
-    task: int
-    window: int | None
-    best_before: float | None = None
-    final: float | None = None
-
-    def fell(self, points: float) -> bool:
-        return self.window is not None and self.final is not None and self.final <= (self.best_before or 0) - points
-
-
-def runaway(run: Run, edges: Sequence[float], loss: float) -> Runaway | None:
-    """The run's soft Bellman error over the windows ``(0, edges[0]], (edges[0], edges[1]], ...`` (env steps per
-    task); None without per-task critic losses."""
-    losses = critic_losses(run)
-    if losses is None:
-        return None
-    peaks = window_peaks(losses[0] / run.n_tasks, losses[1], list(edges))
-    largest = max((p for p in peaks if p is not None), default=None)
-    if largest is None:
-        return None
-    first = next((k for k, p in enumerate(peaks) if p is not None and p[0] > loss), None)
-    if first is None:
-        return Runaway(largest[0], largest[1], None)
-    task = peaks[first][1]
-    steps, values = success_curve(run, task)
-    seen = values[np.asarray(steps, dtype=float) / run.n_tasks <= edges[first]]
-    final = final_task_scores(run)
-    return Runaway(
-        largest[0], task, first, float(seen.max()) if len(seen) else None, None if final is None else float(final[task])
-    )
 
 
 def _finished(runs: Sequence[Run], seeds: Sequence[int] | None) -> list[Run]:
@@ -161,15 +152,15 @@ def _difference(a: list[Run], b: list[Run]) -> MeanDifference | None:
 
 
 def _difference_row(name: str, a: list[Run], b: list[Run], diff: MeanDifference | None) -> str:
-    cells = [name, str(len(a)), str(len(b))]
+    cells = [name, count_cell(a), count_cell(b)]
     if diff is None:
         return "| " + " | ".join(cells + ["-"] * 4) + " |"
     means_a, means_b = _means(a), _means(b)
     cells += [
         f"{_pct(means_a.mean())} / {_pct(means_b.mean())}",
         f"{_pct(diff.value)} [{_pct(diff.low)}, {_pct(diff.high)}]",
-        f"{diff.t:.2f} ({diff.df:.1f})",
-        f"{diff.p:.3f}",
+        f"{diff.t:.2f} ({diff.df:.1f})" if diff.welch_defined else WELCH_UNDEFINED,
+        f"{diff.p:.3f}" if diff.welch_defined else "-",
     ]
     return "| " + " | ".join(cells) + " |"
 
@@ -186,54 +177,12 @@ def _rliable_rows(name: str, a: list[Run], b: list[Run], cmp: Comparison, reps: 
     aggregates = aggregate_estimates(scores, reps, DEFAULT_SEED)
     improvement = improvement_probabilities(scores[cmp.a], {cmp.b: scores[cmp.b]}, reps, DEFAULT_SEED)
     rows = []
-    for label in (cmp.a, cmp.b):
+    for label, runs in ((cmp.a, a), (cmp.b, b)):
         probability = _estimate(improvement[cmp.b], 1.0, 2) if label == cmp.b else "-"
         estimates = aggregates[label]
-        cells = [name, label, str(len(scores[label])), _estimate(estimates["mean"]), _estimate(estimates["iqm"])]
+        cells = [name, label, count_cell(runs), _estimate(estimates["mean"]), _estimate(estimates["iqm"])]
         rows.append("| " + " | ".join([*cells, probability]) + " |")
     return rows
-
-
-def _window_edges(runs: Sequence[Run]) -> list[float] | None:
-    grids = [grid for grid in (evaluation_steps(run) for run in runs) if grid is not None]
-    return list(max(grids, key=lambda grid: (grid[-1], len(grid)))) if grids else None
-
-
-def _runaways(runs: Sequence[Run], edges: Sequence[float], cmp: Comparison) -> dict[int, Runaway | None]:
-    return {id(run): runaway(run, edges, cmp.runaway_loss) for run in runs}
-
-
-def _ran_away(found: Runaway | None) -> bool:
-    return found is not None and found.window is not None
-
-
-def _runaway_rows(runs: Sequence[Run], found_by_run: dict[int, Runaway | None], cmp: Comparison) -> list[str]:
-    rows = []
-    for run in runs:
-        found = found_by_run[id(run)]
-        if found is None:
-            rows.append(f"| {run.label} | {run.seed} | - | - | - | {_pct(_means([run])[0])} |")
-            continue
-        name = short_task_name(run.task_names[found.task]) if run.task_names else str(found.task)
-        ran, fell = "no", "-"
-        if found.window is not None:
-            ran = f"yes, from window {found.window + 1}"
-            change = f"{_pct(found.best_before or 0)} -> {_pct(found.final or 0)}"
-            fell = f"{'yes' if found.fell(cmp.fell) else 'no'} ({change})"
-        cells = [run.label, str(run.seed), f"{found.peak:,.1f} {name}", ran, fell, _pct(_means([run])[0])]
-        rows.append("| " + " | ".join(cells) + " |")
-    return rows
-
-
-def _fisher_line(
-    name: str, a: list[Run], b: list[Run], found_by_run: dict[int, Runaway | None], cmp: Comparison
-) -> str:
-    count_a, count_b = (sum(_ran_away(found_by_run[id(run)]) for run in runs) for runs in (a, b))
-    line = f"- {name}: {cmp.a} {count_a} of {len(a)}, {cmp.b} {count_b} of {len(b)} runs ran away"
-    if a and b:
-        _, p = stats.fisher_exact([[count_a, len(a) - count_a], [count_b, len(b) - count_b]])
-        line += f"; Fisher's exact test (two-sided) p = {float(p):.3f}"
-    return line + "."
 
 
 def _replication_name(cmp: Comparison) -> str:
@@ -258,8 +207,8 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
     with its interval and Welch's t, and how many runs of each algorithm ran away."""
     subsets = _subsets(bench, runs, cmp)
     everything = subsets["all seeds"][0] + subsets["all seeds"][1]
-    edges = _window_edges(everything)
-    by_run = None if edges is None else _runaways(everything, edges, cmp)
+    edges = window_edges(everything)
+    by_run = None if edges is None else runaways(everything, edges, cmp.runaway_loss)
     sentences = []
     for name, (a, b) in subsets.items():
         found = f"{name.capitalize()} (n = {len(a)} and {len(b)}): "
@@ -268,9 +217,9 @@ def comparison_summary(bench: str, runs: Sequence[Run], cmp: Comparison) -> str:
             found += "too few runs for the difference"
         else:
             found += f"{100 * diff.value:+.1f} points [{_pct(diff.low)}, {_pct(diff.high)}]"
-            found += f", Welch t {diff.t:.2f}, p {diff.p:.3f}"
+            found += f", Welch t {diff.t:.2f}, p {diff.p:.3f}" if diff.welch_defined else f", Welch t {WELCH_UNDEFINED}"
         if by_run is not None:
-            counts = [sum(_ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
+            counts = [sum(ran_away(by_run[id(run)]) for run in group) for group in (a, b)]
             found += f"; ran away: {counts[0]} of {len(a)} and {counts[1]} of {len(b)}"
         sentences.append(found + ".")
         if cmp.replication_seeds and name == _replication_name(cmp):
@@ -312,9 +261,9 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
         *(row for name, pair in chosen.items() for row in _rliable_rows(name, *pair, cmp, reps)),
     ]
     everything = chosen["all seeds"][0] + chosen["all seeds"][1]
-    edges = _window_edges(everything)
+    edges = window_edges(everything)
     if edges is not None:
-        found_by_run = _runaways(everything, edges, cmp)
+        found_by_run = runaways(everything, edges, cmp.runaway_loss)
         windows = ", ".join(window_names(edges))
         lines += [
             "",
@@ -325,9 +274,9 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
             "",
             "| Algorithm | Seed | Largest window mean | Ran away | Fell with it | Final (%) |",
             "|:--|--:|--:|:--|:--|--:|",
-            *_runaway_rows(everything, found_by_run, cmp),
+            *runaway_rows(everything, found_by_run, cmp.fell),
             "",
-            *(_fisher_line(name, *pair, found_by_run, cmp) for name, pair in chosen.items()),
+            *(fisher_line(name, tuple(pair), (cmp.a, cmp.b), found_by_run) for name, pair in chosen.items()),
         ]
     return "\n".join(lines) + "\n"
 
@@ -348,6 +297,11 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--fell", type=float, help="drop in success (0-1) that counts as falling with it")
     parser.add_argument("--reps", type=int, default=DEFAULT_REPS, help="rliable's bootstrap resamples")
     parser.add_argument("--out", help="also write the report to this markdown file")
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="count runs that did not finish, marked in the tables (default: left out, each named)",
+    )
     return parser
 
 
@@ -375,6 +329,8 @@ def main(argv: Sequence[str] | None = None) -> str:
         parser.error(problem)
     cmp = _comparison(args)
     runs = load_runs(args.sources)
+    bench_runs = [run for run in runs if args.benchmark in group_runs([run])]
+    runs = leave_out_unfinished(bench_runs, args.include_unfinished, scope="the comparison")
     labels = group_runs(runs).get(args.benchmark, {})
     absent = [label for label in (cmp.a, cmp.b) if label not in labels]
     if absent:
@@ -387,3 +343,19 @@ def main(argv: Sequence[str] | None = None) -> str:
         Path(args.out).write_text(report)
     sys.stdout.write(report)
     return report
+
+
+__all__ = [
+    "DIFFERENCE_REPS",
+    "PREREGISTERED",
+    "WELCH_UNDEFINED",
+    "Comparison",
+    "MeanDifference",
+    "Runaway",
+    "comparison_report",
+    "comparison_summary",
+    "fixed_reading",
+    "main",
+    "mean_difference",
+    "runaway",
+]

@@ -1,6 +1,7 @@
-"""Figures of the paper that need a run folder's logs (``<b>`` = benchmark, ``<a>`` = algorithm label), and the
-helpers every figure shares. The success figures, drawn from records as well, are in
-:mod:`sb3_mtte.experiments.results.summary_figures`.
+"""Figures of the paper that need a run folder's logs (``<b>`` = benchmark, ``<a>`` = algorithm label), and where
+every figure is saved. The success figures, drawn from records as well, are in
+:mod:`sb3_mtte.experiments.results.summary_figures`; what the figures share (options, styles, panels) is in
+:mod:`sb3_mtte.experiments.results.figure_layout`.
 
 - ``bellman_<b>_<a>.png`` (Fig. 3): per task, soft Bellman error (critic loss) and success;
 - ``bellman_avg_<b>.png`` (Fig. 6): Bellman error and success averaged over tasks, one row per algorithm, with the
@@ -15,9 +16,7 @@ from __future__ import annotations
 
 import math
 import sys
-import textwrap
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +26,18 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
 from sb3_mtte.common.utils import short_task_name
+from sb3_mtte.experiments.results.figure_layout import (
+    PlotOptions,
+    algorithm_styles,
+    label_panels,
+    new_figure,
+    panel_grid,
+    point_marker,
+    safe_name,
+    seeds_text,
+    selected_tasks,
+    wrapped_title,
+)
 from sb3_mtte.experiments.results.runs import (
     Run,
     Series,
@@ -40,70 +51,10 @@ from sb3_mtte.experiments.results.runs import (
     task_scalar,
     train_frequency,
 )
-from sb3_mtte.experiments.results.statistics import DEFAULT_REPS, DEFAULT_SEED
-from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
 Groups = dict[str, list[Run]]
 """Algorithm label -> runs (its seeds), for one benchmark."""
-
-_COLORS = tuple(
-    f"tab:{name}" for name in ("blue", "orange", "green", "red", "purple", "brown", "pink", "gray", "olive", "cyan")
-)
-_LINESTYLES = ("-", "--", "-.", ":")
-
-
-@dataclass
-class PlotOptions:
-    """Options of the figures.
-
-    :param out: output folder.
-    :param x_per_task: time axis in env steps per task (else over all tasks).
-    :param smooth: moving-average window in points (1: none).
-    :param tasks: tasks of Figs. 3 and 5 (full or short names; None: all).
-    :param matrix_times: times of the transfer-matrix heatmaps (x units; None: first, middle, last).
-    :param freq_window_episodes: window of the train frequency, in episodes.
-    :param dpi: resolution of the PNG files.
-    :param results_dir: folder of the per-benchmark results JSON (None: ``out``).
-    :param reps: bootstrap resamples of the confidence intervals.
-    :param seed: seed of the bootstrap resamples.
-    :param include_unfinished: count a run that stopped before its budget without a final evaluation in the
-        final-success statistics (at its last evaluation).
-    """
-
-    out: Path
-    x_per_task: bool = True
-    smooth: int = 1
-    tasks: list[str] | None = None
-    matrix_times: list[float] | None = None
-    freq_window_episodes: int = 20
-    dpi: int = 120
-    results_dir: Path | None = None
-    reps: int = DEFAULT_REPS
-    seed: int = DEFAULT_SEED
-    include_unfinished: bool = False
-
-    def xscale(self, run: Run) -> float:
-        return 1.0 / run.n_tasks if self.x_per_task else 1.0
-
-    @property
-    def xlabel(self) -> str:
-        return "environment steps per task" if self.x_per_task else "environment steps (all tasks)"
-
-
-def safe_name(name: str) -> str:
-    """``name`` with only letters, digits and ``-_.`` (file names)."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
-
-
-def new_figure(width: float, height: float) -> Figure:
-    return Figure(figsize=(width, height), layout="constrained")
-
-
-def wrapped_title(fig: Figure, text: str, fontsize: float = 10) -> None:
-    """A figure title wrapped to the figure's width."""
-    chars = max(40, int(fig.get_figwidth() * 120 / fontsize))
-    fig.suptitle(textwrap.fill(text, chars), fontsize=fontsize)
 
 
 def _steps_label(x: float, _position: int | None = None) -> str:
@@ -121,47 +72,6 @@ def save_figure(fig: Figure, path: Path, opts: PlotOptions, written: list[Path])
             ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     fig.savefig(path, dpi=opts.dpi)
     written.append(path)
-
-
-def algorithm_styles(labels: Sequence[str]) -> dict[str, tuple[str, str]]:
-    """(color, linestyle) of each algorithm label: fixed by its place among the registered variants, so a registered
-    method looks the same in every figure; unregistered labels take the places after them, in name order. Past ten
-    labels the colors repeat with another line style, so no two of the first 40 labels share both."""
-    known = variant_labels()
-    place = {label: i for i, label in enumerate(known + sorted(set(labels) - set(known)))}
-    return {
-        label: (_COLORS[place[label] % len(_COLORS)], _LINESTYLES[place[label] // len(_COLORS) % len(_LINESTYLES)])
-        for label in labels
-    }
-
-
-def point_marker(x: Sequence[float] | np.ndarray) -> str | None:
-    """A dot for a series of one point, which a line alone would not show."""
-    return "o" if len(x) == 1 else None
-
-
-def _selected_tasks(names: Sequence[str], wanted: Sequence[str] | None) -> list[int]:
-    """Indices of the tasks named in ``wanted`` (full or short names, e.g. ``pick-place``); all when None."""
-    if not wanted:
-        return list(range(len(names)))
-    chosen = []
-    for want in wanted:
-        for i, name in enumerate(names):
-            if want in (name, short_task_name(name)) and i not in chosen:
-                chosen.append(i)
-    return chosen or list(range(len(names)))
-
-
-def panel_grid(n: int, max_cols: int, width: float, height: float) -> tuple[Figure, list[Axes]]:
-    """A figure with ``n`` panels in a grid of at most ``max_cols`` columns (unused cells hidden)."""
-    cols = min(n, max_cols)
-    rows = math.ceil(n / cols)
-    fig = new_figure(width * cols, height * rows + 0.6)
-    grid = fig.subplots(rows, cols, squeeze=False)
-    axes = [grid[j // cols][j % cols] for j in range(rows * cols)]
-    for ax in axes[n:]:
-        ax.axis("off")
-    return fig, axes[:n]
 
 
 def _mean_series(
@@ -219,12 +129,14 @@ def plot_bellman(bench: str, groups: Groups, opts: PlotOptions, written: list[Pa
     for label in label_order(list(with_loss)):
         runs = with_loss[label]
         names = runs[0].task_names
-        fig, axes = panel_grid(len(_selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
-        for ax, i in zip(axes, _selected_tasks(names, opts.tasks), strict=True):
+        fig, axes = panel_grid(len(selected_tasks(names, opts.tasks)), 4, 3.6, 2.8)
+        twins = []
+        for ax, i in zip(axes, selected_tasks(names, opts.tasks), strict=True):
             success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
             loss = _mean_series(runs, lambda r, i=i: task_scalar(r, CRITIC_LOSS_KEY, i), opts)
-            _twin_panel(ax, success, loss, "soft Bellman error")
+            twins.append(_twin_panel(ax, success, loss, "soft Bellman error"))
             ax.set_title(short_task_name(names[i]), fontsize=9)
+        label_panels(axes, 4, opts.xlabel, "success rate (%)", twins, "soft Bellman error J^Q")
         wrapped_title(
             fig, f"{bench}, {label}: success rate % (blue) and soft Bellman error J^Q (orange) vs {opts.xlabel}"
         )
@@ -265,8 +177,9 @@ def plot_negative_transfer(bench: str, groups: Groups, opts: PlotOptions, writte
 def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) -> Figure:
     """Fig. 5: per task, success and the share of recomputations in which the task was in C_s."""
     names = runs[0].task_names
-    tasks = _selected_tasks(names, opts.tasks)
+    tasks = selected_tasks(names, opts.tasks)
     fig, axes = panel_grid(len(tasks), 4, 3.6, 2.8)
+    twins = []
     for ax, i in zip(axes, tasks, strict=True):
 
         def frequency(run: Run, i: int = i) -> Series:
@@ -275,9 +188,10 @@ def _train_frequency_figure(title: str, runs: Sequence[Run], opts: PlotOptions) 
             return steps, freq[:, i]
 
         success = _mean_series(runs, lambda r, i=i: success_curve(r, i), opts)
-        twin = _twin_panel(ax, success, _mean_series(runs, frequency, opts, smoothed=False), "train frequency")
-        twin.set_ylim(-0.02, 1.02)
+        twins.append(_twin_panel(ax, success, _mean_series(runs, frequency, opts, smoothed=False), "train frequency"))
+        twins[-1].set_ylim(-0.02, 1.02)
         ax.set_title(short_task_name(names[i]), fontsize=9)
+    label_panels(axes, 4, opts.xlabel, "success rate (%)", twins, "train frequency")
     wrapped_title(
         fig,
         f"{title}: success rate % (blue) and train frequency (orange, share of recomputations in C_s over "
@@ -370,7 +284,11 @@ def _transfer_matrix_figure(
         ax.set_xlabel("task i (affected)", fontsize=8)
         ax.set_ylabel("task k (virtual step)", fontsize=8)
         fig.colorbar(image, ax=ax, fraction=0.046, pad=0.04).ax.tick_params(labelsize=7)
-    wrapped_title(fig, f"{title}: J_i(theta^k) - J_i(theta) (red < 0: a step on k hurts i); t in {opts.xlabel}", 9)
+    wrapped_title(
+        fig,
+        f"{title}, {seeds_text(runs)}: J_i(theta^k) - J_i(theta) (red < 0: a step on k hurts i); t in {opts.xlabel}",
+        9,
+    )
     return fig
 
 

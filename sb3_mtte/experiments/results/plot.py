@@ -19,9 +19,10 @@ Written to ``--out``, per benchmark ``<b>``:
 - ``table1_<b>.md`` (also printed): per algorithm n (seeds), mean and IQM of the final success over runs x tasks and
   the probability of improvement of Ours (``mtsacte``) over it, each with its 95% stratified-bootstrap interval
   (rliable, ``--reps`` resamples drawn from ``--seed``); a run's final success is its final evaluation
-  (``success.json``) when present, else its last evaluation; a run without a final evaluation that stopped before its
-  budget (crashed, killed, still training) is left out of every figure and table, and named in one line on stderr
-  (``--include-unfinished`` draws it and counts its last evaluation);
+  (``success.json``) when present, else its last evaluation; a run that did not finish (``finished: false`` in its
+  ``run_info`` or record: crashed, stopped, killed, still training) is left out of every figure and table, and named
+  in one line on stderr (``--include-unfinished`` draws it, counts its final or last evaluation and marks it
+  ``unfinished`` in the tables);
 - ``compare_<b>.md``, for a benchmark with a comparison fixed before its runs (MT10-100k: Ours against SAC-MT,
   :mod:`sb3_mtte.experiments.results.compare`): the comparison in full; its summary goes under Table 1;
 - ``runs_<b>.md``: every run, seed by seed: its final and last in-training success, the tasks above 0 at the end and
@@ -34,6 +35,8 @@ Written to ``--out``, per benchmark ``<b>``:
   keep the training losses) and, from run folders only (they need the logs that records leave out), train frequency,
   mu and w, and transfer-matrix heatmaps at ``--matrix-times``, each titled with the time of the recomputation it draws,
   the nearest; a time past the log is skipped with a line naming the run whose log stops first.
+
+Each benchmark gets a line on stdout as its drawing starts, and each file one as it is written.
 
 Success curves come from ``evaluations.npz`` (a record's ``curve``), else the ``eval/`` scalars, else the training
 episodes (``rollout/``). Times are env steps per task (``--x total`` for steps over all tasks).
@@ -55,7 +58,12 @@ from sb3_mtte.experiments.results.compare import PREREGISTERED, comparison_repor
 from sb3_mtte.experiments.results.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
 from sb3_mtte.experiments.results.records import load_runs
 from sb3_mtte.experiments.results.runs import Run, group_runs
-from sb3_mtte.experiments.results.statistics import DEFAULT_REPS, DEFAULT_SEED, run_budget, unfinished
+from sb3_mtte.experiments.results.statistics import (
+    DEFAULT_REPS,
+    DEFAULT_SEED,
+    has_final_evaluation,
+    leave_out_unfinished,
+)
 from sb3_mtte.experiments.results.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
 from sb3_mtte.experiments.results.tables import (
     BenchmarkStatistics,
@@ -81,6 +89,14 @@ def _check_tasks(runs: Sequence[Run], wanted: Sequence[str] | None) -> None:
         )
 
 
+class WrittenFiles(list):
+    """The paths a plot has written, each named on stdout as it is written: a long plot shows its progress."""
+
+    def append(self, path: Path) -> None:
+        super().append(path)
+        print(f"  wrote {path}", flush=True)
+
+
 def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
     """Write every figure and table for the runs and records under ``sources``; return the written paths."""
     runs = load_runs(sources)
@@ -90,34 +106,51 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
             "runs (train's -f) or docs/records."
         )
     _check_tasks(runs, opts.tasks)
-    left_out = {id(run) for run in _left_out_runs(runs, opts)}
-    runs = [run for run in runs if id(run) not in left_out]
-    if not runs:
-        raise PlotInputError(
-            "every run stopped before its budget without a final evaluation (each named above): evaluate them, or "
-            "give --include-unfinished to draw them at their last evaluation"
-        )
+    kept = leave_out_unfinished(runs, opts.include_unfinished)
+    if not kept:
+        raise PlotInputError(_nothing_finished(runs))
     opts.out.mkdir(parents=True, exist_ok=True)
-    written: list[Path] = []
+    written: list[Path] = WrittenFiles()
+    groups = sorted(group_runs(kept).items())
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
-        for bench, by_label in sorted(group_runs(runs).items()):
-            bands = curve_bands(by_label, opts)
-            plot_success(bench, bands, opts, written)
-            plot_per_task(bench, bands, next(iter(by_label.values()))[0].task_names, opts, written)
-            plot_bellman(bench, by_label, opts, written)
-            bellman = bellman_table(bench, by_label)
-            if bellman is not None:
-                _write_table(f"bellman_{safe_name(bench)}.md", bellman, opts, written, echo=False)
-            plot_negative_transfer(bench, by_label, opts, written)
-            stats = benchmark_statistics(by_label, opts.reps, opts.seed)
-            bench_runs = [run for by_seed in by_label.values() for run in by_seed]
-            if stats.scores:
-                plot_profile(bench, stats.scores, opts, written)
-                _write_table1(bench, stats, bench_runs, opts, written)
-                _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
-            _write_results(bench, bench_runs, opts, written)
-    return written
+        for k, (bench, by_label) in enumerate(groups, start=1):
+            n_runs = sum(len(by_seed) for by_seed in by_label.values())
+            runs_of = f"{n_runs} run{'s' * (n_runs != 1)} of {len(by_label)} algorithm{'s' * (len(by_label) != 1)}"
+            print(f"{bench} ({k} of {len(groups)}): {runs_of}", flush=True)
+            _plot_benchmark(bench, by_label, opts, written)
+    return list(written)
+
+
+def _nothing_finished(runs: Sequence[Run]) -> str:
+    if any(has_final_evaluation(run) for run in runs):
+        return (
+            "every run stopped before its budget (each named above): resume them, or give --include-unfinished to "
+            "draw them, marked unfinished"
+        )
+    return (
+        "every run stopped before its budget without a final evaluation (each named above): evaluate them, or give "
+        "--include-unfinished to draw them at their last evaluation"
+    )
+
+
+def _plot_benchmark(bench: str, by_label: dict[str, list[Run]], opts: PlotOptions, written: list[Path]) -> None:
+    """Every figure and table of one benchmark."""
+    bands = curve_bands(by_label, opts)
+    plot_success(bench, bands, opts, written)
+    plot_per_task(bench, bands, next(iter(by_label.values()))[0].task_names, opts, written)
+    plot_bellman(bench, by_label, opts, written)
+    bellman = bellman_table(bench, by_label)
+    if bellman is not None:
+        _write_table(f"bellman_{safe_name(bench)}.md", bellman, opts, written, echo=False)
+    plot_negative_transfer(bench, by_label, opts, written)
+    stats = benchmark_statistics(by_label, opts.reps, opts.seed)
+    bench_runs = [run for by_seed in by_label.values() for run in by_seed]
+    if stats.scores:
+        plot_profile(bench, stats.scores, opts, written)
+        _write_table1(bench, stats, bench_runs, opts, written)
+        _write_table(f"runs_{safe_name(bench)}.md", runs_table(bench, by_label), opts, written, echo=False)
+    _write_results(bench, bench_runs, opts, written)
 
 
 def _write_table1(
@@ -133,21 +166,6 @@ def _write_table1(
         )
         table += "\n" + comparison_summary(bench, runs, cmp) + "\n"
     _write_table(f"table1_{safe_name(bench)}.md", table, opts, written)
-
-
-def _left_out_runs(runs: Sequence[Run], opts: PlotOptions) -> list[Run]:
-    """The runs that stopped before their budget without a final evaluation (none with ``--include-unfinished``),
-    each named in one line on stderr: every figure and table leaves them out."""
-    left_out = [] if opts.include_unfinished else [run for run in runs if unfinished(run)]
-    for run in left_out:
-        reached, planned = run_budget(run)
-        stopped = "before its budget" if planned is None else f"at {reached or 0:,} of {planned:,} env steps"
-        print(
-            f"Left out of every figure and table: {run.path} ({run.benchmark}, {run.label}, seed {run.seed}) has no "
-            f"final evaluation and stopped {stopped}; --include-unfinished counts its last evaluation",
-            file=sys.stderr,
-        )
-    return left_out
 
 
 def _write_table(name: str, table: str, opts: PlotOptions, written: list[Path], echo: bool = True) -> None:
@@ -192,8 +210,8 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     parser.add_argument(
         "--include-unfinished",
         action="store_true",
-        help="draw a run that stopped before its budget without a final evaluation (crashed, killed, still "
-        "training) and count its last evaluation (default: left out of every figure and table, named)",
+        help="draw a run that did not finish (crashed, stopped, killed, still training), count its final or last "
+        "evaluation and mark it in the tables (default: left out of every figure and table, named)",
     )
     parser.add_argument(
         "--results-dir",
@@ -218,6 +236,8 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         parser.error("--reps must be at least 1")
     missing = [source for source in args.sources if not Path(source).is_dir()]
     problem = output_folder_error("--out", opts.out)
+    if opts.results_dir is not None:
+        problem = problem or output_folder_error("--results-dir", opts.results_dir)
     if missing:
         problem = f"{missing[0]}: no such folder; give folders of runs (train's -f) or records"
     if not 0 <= args.seed < 2**32:

@@ -23,10 +23,13 @@ repository. Its fields (format :data:`RECORD_VERSION`):
   a virtual step on one task moves the others' objectives next to its own; both absent in records made before
   them); the mean of mu, of w and of C_s membership per task over the run.
 
+A run that did not finish (``finished: false``) is skipped, named in one line, unless ``--include-unfinished`` is
+given; its record then says so, and the tables mark it.
+
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
 Meta-World's v1 rewards; the default ``--out`` is ``docs/records``)::
 
-    sb3-mtte record RUNS_DIR [--out docs/records]
+    sb3-mtte record RUNS_DIR [--out docs/records] [--include-unfinished]
 """
 
 from __future__ import annotations
@@ -45,6 +48,7 @@ from sb3_mtte.experiments.cli import command_prog, output_folder_error
 from sb3_mtte.experiments.results.figures import safe_name
 from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
 from sb3_mtte.experiments.results.runs import Run, Series, discover_runs, results_benchmark, task_scalar
+from sb3_mtte.experiments.results.statistics import leave_out_unfinished
 from sb3_mtte.experiments.run_info import read_json
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
 
@@ -153,20 +157,16 @@ def record_path(record: dict[str, Any], out: Path) -> Path:
     return out / safe_name(bench) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
 
-def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -> list[Path]:
-    """Write the record of every run folder under ``runs_dir`` that has a final evaluation into ``out``
-    (:func:`record_path`), naming each run skipped (no final evaluation) in one line on stderr; two runs that would
-    share a record file stop it before anything is written."""
+def write_records(
+    runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR, include_unfinished: bool = False
+) -> list[Path]:
+    """Write the record of every run folder under ``runs_dir`` that has a final evaluation and finished into
+    ``out`` (:func:`record_path`), naming each run skipped in one line on stderr: no final evaluation, or it did not
+    finish (recorded all the same with ``include_unfinished``, its ``budget`` saying so). Two runs that would share
+    a record file stop it before anything is written."""
     planned: dict[Path, tuple[Run, dict[str, Any]]] = {}
-    for run in discover_runs(runs_dir):
-        if run.final is None:
-            model = run.path / str(run.info.get("final_model") or f"{run.benchmark}.zip")
-            print(
-                f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation "
-                f"(success.json); evaluate it first: {command_prog('evaluate')} {model} --episodes 50",
-                file=sys.stderr,
-            )
-            continue
+    evaluated = [run for run in discover_runs(runs_dir) if _evaluated(run)]
+    for run in leave_out_unfinished(evaluated, include_unfinished, "the records", "records"):
         record = run_record(run)
         path = record_path(record, Path(out))
         if path in planned:
@@ -179,6 +179,19 @@ def write_records(runs_dir: str | Path, out: str | Path = DEFAULT_RECORDS_DIR) -
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(json.dumps(record, indent=1) + "\n")
     return list(planned)
+
+
+def _evaluated(run: Run) -> bool:
+    """Whether a run has a final evaluation; one line on stderr names a run without and how to evaluate it."""
+    if run.final is not None:
+        return True
+    model = run.path / str(run.info.get("final_model") or f"{run.benchmark}.zip")
+    print(
+        f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation "
+        f"(success.json); evaluate it first: {command_prog('evaluate')} {model} --episodes 50",
+        file=sys.stderr,
+    )
+    return False
 
 
 def read_records(folder: str | Path) -> list[tuple[Path, dict[str, Any]]]:
@@ -218,6 +231,8 @@ def run_from_record(record: dict[str, Any], path: Path) -> Run:
     info = {key: record.get(key) for key in keys}
     info["hyperparams"] = record.get("hyperparams") or {}
     info["git"] = record.get("git") or {}
+    budget = record.get("budget") or {}
+    info.update({key: budget[key] for key in ("n_timesteps", "timesteps", "finished") if budget.get(key) is not None})
     run = Run(path, info)
     curve = record.get("curve")
     if curve:
@@ -275,17 +290,29 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         default=str(DEFAULT_RECORDS_DIR),
         help=f"folder for the records, written as <env id>/<algo>_seed<k>.json (default: {DEFAULT_RECORDS_DIR})",
     )
+    parser.add_argument(
+        "--include-unfinished",
+        action="store_true",
+        help="also record a run that did not finish (its record says so; default: skipped, named)",
+    )
     args = parser.parse_args(argv)
     problem = output_folder_error("--out", args.out)
     if not Path(args.runs_dir).is_dir():
         problem = f"{args.runs_dir}: no such folder; give train's -f"
     if problem:
         parser.exit(2, f"{parser.prog}: error: {problem}\n")
-    paths = write_records(args.runs_dir, args.out)
+    paths = write_records(args.runs_dir, args.out, args.include_unfinished)
     for path in paths:
         print(path)
-    if not paths and not discover_runs(args.runs_dir):
+    found = [] if paths else discover_runs(args.runs_dir)
+    if not paths and not found:
         parser.exit(2, f"{parser.prog}: error: no run folder (run_info.json) under {args.runs_dir}: give train's -f\n")
+    if not paths and any(run.final is not None for run in found):
+        parser.exit(
+            2,
+            f"{parser.prog}: error: no finished run under {args.runs_dir} (each named above): resume them, or give "
+            "--include-unfinished to record them as unfinished\n",
+        )
     if not paths:
         parser.exit(
             2,

@@ -9,6 +9,7 @@ scores and seed give the same intervals, and a label's interval depends on its o
 
 from __future__ import annotations
 
+import sys
 import warnings
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -150,16 +151,55 @@ def run_budget(run: Run) -> tuple[int | None, int | None]:
 
 
 def unfinished(run: Run) -> bool:
-    """Whether a run stopped before its budget without a final evaluation (it crashed, was killed or is still
-    training): no final evaluation, its ``run_info`` not ``finished``, and fewer env steps reached than its
-    ``n_timesteps`` (without a known budget: ``finished`` false). A run that trained its whole budget without a final
-    evaluation is finished: its last evaluation is its final success."""
-    if has_final_evaluation(run) or run.info.get("finished"):
+    """Whether a run did not finish: its ``run_info`` (a record's ``budget``) says ``finished: false``, as for a run
+    that crashed, was stopped or killed, or is still training, even when it was evaluated since. A run that predates
+    the field did not finish when it has no final evaluation and reached fewer env steps than its ``n_timesteps``:
+    a run that trained its whole budget is finished, and its last evaluation is its final success."""
+    finished = run.info.get("finished")
+    if finished is not None:
+        return not finished
+    if has_final_evaluation(run):
         return False
     reached, planned = run_budget(run)
-    if planned is None:
-        return run.info.get("finished") is False
-    return reached is None or reached < planned
+    return planned is not None and (reached is None or reached < planned)
+
+
+def stopped_at(run: Run) -> str:
+    """Where a run stopped, for a line: ``at 6,948 of 16,000 env steps``, else ``before its budget``."""
+    reached, planned = run_budget(run)
+    return "before its budget" if planned is None else f"at {reached or 0:,} of {planned:,} env steps"
+
+
+def seed_cell(run: Run) -> str:
+    """A run's seed in a table, marked when the run did not finish (``2 (unfinished)``); ``-`` when unknown."""
+    seed = "-" if run.seed is None else str(run.seed)
+    return f"{seed} (unfinished)" if unfinished(run) else seed
+
+
+def count_cell(runs: Sequence[Run]) -> str:
+    """How many runs a table row counts, with how many of them did not finish (``3 (1 unfinished)``)."""
+    stopped = sum(unfinished(run) for run in runs)
+    return f"{len(runs)} ({stopped} unfinished)" if stopped else str(len(runs))
+
+
+def leave_out_unfinished(
+    runs: Sequence[Run], include: bool, scope: str = "every figure and table", action: str = "counts"
+) -> list[Run]:
+    """``runs`` but those that did not finish (:func:`unfinished`), each named in one line on stderr saying where
+    it stopped and what ``--include-unfinished`` does (``action``: counts, records); all of them with ``include``
+    (the tables mark them)."""
+    kept = []
+    for run in runs:
+        if include or not unfinished(run):
+            kept.append(run)
+            continue
+        who = f"{run.path} ({run.benchmark}, {run.label}, seed {run.seed})"
+        if has_final_evaluation(run):
+            why, counted = f"did not finish: it stopped {stopped_at(run)}", "its final evaluation, marked unfinished"
+        else:
+            why, counted = f"has no final evaluation and stopped {stopped_at(run)}", "its last evaluation"
+        print(f"Left out of {scope}: {who} {why}; --include-unfinished {action} {counted}", file=sys.stderr)
+    return kept
 
 
 def final_task_scores(run: Run) -> np.ndarray | None:
@@ -188,13 +228,17 @@ __all__ = [
     "DEFAULT_SEED",
     "Estimate",
     "aggregate_estimates",
+    "count_cell",
     "curve_estimates",
     "final_task_scores",
     "has_final_evaluation",
     "improvement_probabilities",
+    "leave_out_unfinished",
     "performance_profiles",
     "run_budget",
     "score_matrix",
+    "seed_cell",
     "seeded",
+    "stopped_at",
     "unfinished",
 ]

@@ -19,21 +19,23 @@ import numpy as np
 from matplotlib.axes import Axes
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.results.figures import (
+from sb3_mtte.experiments.results.figure_layout import (
     PlotOptions,
     algorithm_styles,
+    label_panels,
     new_figure,
     panel_grid,
     point_marker,
     safe_name,
-    save_figure,
     wrapped_title,
 )
+from sb3_mtte.experiments.results.figures import save_figure
 from sb3_mtte.experiments.results.runs import Run, common_grid, label_order, smooth, success_curve
 from sb3_mtte.experiments.results.statistics import PROFILE_TAUS, curve_estimates, performance_profiles
 from sb3_mtte.experiments.variants import ablation_labels
 
 BAND_NOTE = "mean over seeds, band: 95% stratified-bootstrap CI"
+PER_TASK_COLUMNS = 5
 
 
 @dataclass
@@ -129,7 +131,7 @@ def plot_per_task(
 ) -> None:
     """Success of every task, one panel per task, every algorithm but Fig. 7's ablations (those are in the success
     figure's second panel) with its confidence band over seeds."""
-    fig, axes = panel_grid(len(task_names), 5, 3.2, 2.6)
+    fig, axes = panel_grid(len(task_names), PER_TASK_COLUMNS, 3.2, 2.6)
     styles = algorithm_styles(list(bands))
     shown = success_panels(list(bands))[0][1]
     for i, (ax, name) in enumerate(zip(axes, task_names, strict=True)):
@@ -142,6 +144,7 @@ def plot_per_task(
         ax.set_ylim(-2, 102)
         ax.tick_params(labelsize=7)
         ax.grid(alpha=0.3)
+    label_panels(axes, PER_TASK_COLUMNS, opts.xlabel, "success rate (%)")
     handles, labels = axes[0].get_legend_handles_labels()
     if handles:
         fig.legend(handles, labels, loc="outside lower center", ncol=min(len(labels), 6), fontsize=8)
@@ -151,7 +154,8 @@ def plot_per_task(
 
 
 def plot_profile(bench: str, scores: Mapping[str, np.ndarray], opts: PlotOptions, written: list[Path]) -> None:
-    """Performance profile of the final success: share of runs x tasks above each tau, with its confidence band."""
+    """Performance profile of the final success: share of runs x tasks above each tau, with its confidence band; the
+    share holds from one tau to the next, so a drop is drawn as a step."""
     profiles, intervals = performance_profiles(scores, PROFILE_TAUS, opts.reps, opts.seed)
     fig = new_figure(6, 4.2)
     ax = fig.subplots()
@@ -159,9 +163,15 @@ def plot_profile(bench: str, scores: Mapping[str, np.ndarray], opts: PlotOptions
     for label, profile in profiles.items():
         color, linestyle = styles[label]
         ax.plot(
-            100 * PROFILE_TAUS, profile, color=color, linestyle=linestyle, label=f"{label} (n={len(scores[label])})"
+            100 * PROFILE_TAUS,
+            profile,
+            color=color,
+            linestyle=linestyle,
+            drawstyle="steps-post",
+            label=f"{label} (n={len(scores[label])})",
         )
-        ax.fill_between(100 * PROFILE_TAUS, intervals[label][0], intervals[label][1], color=color, alpha=0.2)
+        low, high = intervals[label]
+        ax.fill_between(100 * PROFILE_TAUS, low, high, step="post", color=color, alpha=0.2)
     ax.set_xlabel("final success rate tau (%)")
     ax.set_ylabel("fraction of runs x tasks with success > tau")
     ax.set_xlim(0, 100)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -18,6 +18,8 @@ from sb3_mtte.experiments.results.statistics import (
     final_task_scores,
     improvement_probabilities,
     score_matrix,
+    seed_cell,
+    unfinished,
 )
 from sb3_mtte.experiments.variants import paper_sources, paper_table1
 
@@ -31,6 +33,7 @@ def results_records(runs: Sequence[Run]) -> list[dict[str, Any]]:
             continue
         records.append(
             {
+                **({"unfinished": True} if unfinished(run) else {}),
                 "algo": run.info.get("algo"),
                 "label": run.label,
                 "benchmark": run.benchmark,
@@ -52,13 +55,14 @@ OURS_ALGO = "mtsacte"
 class BenchmarkStatistics:
     """Final success of one benchmark's algorithms: ``scores`` label -> ``(runs, tasks)``, the mean and IQM of each
     with its interval, P(Ours > label) for every other label (empty without Ours), and the Meta-World reward
-    functions of the runs (empty off Meta-World)."""
+    functions of the runs (empty off Meta-World), and ``scored`` label -> the runs behind ``scores``."""
 
     scores: dict[str, np.ndarray]
     aggregates: dict[str, dict[str, Estimate]]
     ours: str | None
     improvement: dict[str, Estimate]
     reward_function_versions: tuple[str, ...] = ()
+    scored: dict[str, list[Run]] = field(default_factory=dict)
 
 
 def ours_label(groups: dict[str, list[Run]]) -> str | None:
@@ -70,17 +74,18 @@ def benchmark_statistics(
     groups: dict[str, list[Run]], reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED
 ) -> BenchmarkStatistics:
     """Score matrices and their aggregates (rliable) for the algorithms of one benchmark, in label order."""
-    scores = {}
+    scores, scored = {}, {}
     for label in label_order(list(groups)):
         matrix = score_matrix(groups[label])
         if matrix is not None:
             scores[label] = matrix
+            scored[label] = [run for run in groups[label] if final_task_scores(run) is not None]
     ours = ours_label({label: groups[label] for label in scores})
     baselines = {label: matrix for label, matrix in scores.items() if label != ours}
     improvement = improvement_probabilities(scores[ours], baselines, reps, seed) if ours and baselines else {}
     versions = {run.reward_function_version for label in scores for run in groups[label]} - {None}
     aggregates = aggregate_estimates(scores, reps, seed) if scores else {}
-    return BenchmarkStatistics(scores, aggregates, ours, improvement, tuple(sorted(versions)))
+    return BenchmarkStatistics(scores, aggregates, ours, improvement, tuple(sorted(versions)), scored)
 
 
 def _cell(estimate: Estimate | None, scale: float = 100.0, digits: int = 1) -> str:
@@ -95,7 +100,7 @@ SAME_BUDGET_ANCHORS: dict[str, tuple[str, dict[str, str]]] = {
         "McLean et al. 2025 (Multi-Task RL Enables Parameter Scaling), Meta-World MT10, multi-head multi-task SAC with "
         "3 hidden layers 256 and 512 wide (ours: 2 x 400, one-hot input), 28.3% and 33.1% after 1.0M env steps "
         "(100k per task), the IQM over their seeds of each run's mean success, read off their Fig. 3 "
-        "(benchmarks/read_vega_lines.py on figures/fig3_mt10.svg of rainx0r/mtrl); their protocol, not ours",
+        "(scripts/studies/read_vega_lines.py on figures/fig3_mt10.svg of rainx0r/mtrl); their protocol, not ours",
         {"SAC-MT": "28-33"},
     ),
 }
@@ -110,6 +115,8 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
     if stats.improvement:
         note += f"; P({stats.ours} > X): probability that a run of {stats.ours} beats a run of X on a task"
     note += ". A run's final success is its final evaluation (success.json) when present, else its last evaluation."
+    if any(unfinished(run) for runs in stats.scored.values() for run in runs):
+        note += f" Unfinished: {UNFINISHED_NOTE}"
     if stats.reward_function_versions:
         note += f" Meta-World reward function {' and '.join(stats.reward_function_versions)}."
     if published:
@@ -124,6 +131,12 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
     return note
 
 
+def _unfinished_seeds(runs: Sequence[Run]) -> str:
+    """The seeds of ``runs`` that did not finish, for Table 1's column (``seeds 2, 4``), or ``-``."""
+    seeds = [seed_cell(run).split(" ")[0] for run in runs if unfinished(run)]
+    return "-" if not seeds else f"seed{'s' if len(seeds) > 1 else ''} {', '.join(seeds)}"
+
+
 def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, seed: int = DEFAULT_SEED) -> str:
     """Markdown Table 1 of one benchmark: per algorithm, n (seeds), mean and IQM of the final success over runs x
     tasks and P(Ours > algorithm), each with its 95% interval, and the published success where there is one."""
@@ -136,6 +149,8 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
     headers += ["Published (%)"] if published else []
     anchors = SAME_BUDGET_ANCHORS.get(bench, ("", {}))[1]
     headers += ["At this budget (%)"] if anchors else []
+    marked = any(unfinished(run) for runs in stats.scored.values() for run in runs)
+    headers += ["Unfinished"] if marked else []
     lines = ["| " + " | ".join(headers) + " |", "|:--|" + "--:|" * (len(headers) - 1)]
     for label, matrix in stats.scores.items():
         cells = [label, str(len(matrix)), _cell(stats.aggregates[label]["mean"]), _cell(stats.aggregates[label]["iqm"])]
@@ -145,9 +160,15 @@ def table1(bench: str, stats: BenchmarkStatistics, reps: int = DEFAULT_REPS, see
             cells.append(f"{published[label]:.1f}" if label in published else "-")
         if anchors:
             cells.append(anchors.get(label, "-"))
+        if marked:
+            cells.append(_unfinished_seeds(stats.scored.get(label, [])))
         lines.append("| " + " | ".join(cells) + " |")
     return _table_note(bench, stats, published, reps, seed) + "\n\n" + "\n".join(lines) + "\n"
 
+
+UNFINISHED_NOTE = (
+    "a run that did not finish (drawn with --include-unfinished), counted at its final evaluation, else its last."
+)
 
 RUNS_NOTE = (
     "{bench}: every run, seed by seed. Final: the final success that Table 1 counts (its final evaluation when "
@@ -178,10 +199,9 @@ def run_row(run: Run) -> list[str]:
         [] if final is None else sorted(zip(final, run.task_names, strict=True), key=lambda pair: (-pair[0], pair[1]))
     )
     tasks = ", ".join(f"{short_task_name(name)} {100 * rate:.0f}" for rate, name in above if rate > 0)
-    seed = "-" if run.seed is None else str(run.seed)
     mean = None if final is None else float(final.mean())
     tasks = "-" if final is None else tasks or "none"
-    return [run.label, seed, _percent(mean), _percent(last), tasks, _commit(run)]
+    return [run.label, seed_cell(run), _percent(mean), _percent(last), tasks, _commit(run)]
 
 
 def runs_table(bench: str, groups: dict[str, list[Run]]) -> str:
@@ -189,6 +209,10 @@ def runs_table(bench: str, groups: dict[str, list[Run]]) -> str:
     the tasks above 0 at the end, and the package commit."""
     headers = ["Algorithm", "Seed", "Final (%)", "Last in training (%)", "Tasks above 0 at the end (%)", "Commit"]
     lines = ["| " + " | ".join(headers) + " |", "|:--|--:|--:|--:|:--|:--|"]
-    for run in table_order(groups):
+    runs = table_order(groups)
+    for run in runs:
         lines.append("| " + " | ".join(run_row(run)) + " |")
-    return RUNS_NOTE.format(bench=bench) + "\n\n" + "\n".join(lines) + "\n"
+    note = RUNS_NOTE.format(bench=bench)
+    if any(unfinished(run) for run in runs):
+        note += f" Unfinished: {UNFINISHED_NOTE}"
+    return note + "\n\n" + "\n".join(lines) + "\n"
