@@ -183,10 +183,40 @@ def test_a_benchmark_without_hyperparameters_or_a_resume_without_a_run_names_the
         main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict", "-f", str(tmp_path), "--resume"])
 
 
-def test_a_second_run_into_the_same_folder_names_resume(tmp_path):
-    run_dir = tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
+def test_a_second_run_into_the_folder_of_an_unfinished_run_names_resume(tmp_path):
+    killer = f"callback:{{'{RaiseAt.__module__}.RaiseAt': dict(timesteps=60)}}"
+    with pytest.raises(RuntimeError, match="simulated kill"):
+        tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", "-params", killer, steps=100)
+    run_dir = tmp_path / "mtsac_mt" / f"{ENV}_1"
     with pytest.raises(SystemExit, match=f"{run_dir} already holds a run: use --resume {run_dir}."):
         tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", steps=100)
+
+
+def test_the_same_command_again_on_a_finished_run_does_nothing_and_exits_0(tmp_path, capsys):
+    """The README's main job names its run folder (--exp-id 1): a second identical command says the run is finished
+    and leaves it as it is; one with other settings is refused, naming the first difference."""
+    run_dir = tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", "--save-freq", "100", steps=200)
+    before = {path.name: path.stat().st_mtime_ns for path in run_dir.rglob("*")}
+    capsys.readouterr()
+    assert tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", "--save-freq", "100", steps=200) == run_dir
+    assert f"{run_dir} holds this run, finished at 200 env steps: nothing to do" in capsys.readouterr().out
+    assert {path.name: path.stat().st_mtime_ns for path in run_dir.rglob("*")} == before
+    with pytest.raises(SystemExit, match=r"holds a finished run with other settings \(--seed: 3 there, 4 here\)"):
+        tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", "--save-freq", "100", "--seed", "4", steps=200)
+    with pytest.raises(SystemExit, match=r"other settings \(-params batch_size: 64 there, 16 here\): give another"):
+        tiny_train(tmp_path, "mtsac_mt", "--exp-id", "1", "--save-freq", "100", "-params", "batch_size:16", steps=200)
+    assert sorted(path.name for path in (tmp_path / "mtsac_mt").iterdir()) == [run_dir.name]
+
+
+def test_resuming_a_finished_run_does_nothing(tmp_path, capsys):
+    """No retraining of the last segment from the last checkpoint, no new final model, no resume recorded."""
+    run_dir = tiny_train(tmp_path, "mtsac_mt", "--save-freq", "100", steps=200)
+    before = {path.name: path.stat().st_mtime_ns for path in run_dir.rglob("*")}
+    capsys.readouterr()
+    main(["train", "--resume", str(run_dir)])
+    assert f"{run_dir} is finished (200 of 200 env steps): nothing to do; -n above 200" in capsys.readouterr().out
+    assert {path.name: path.stat().st_mtime_ns for path in run_dir.rglob("*")} == before
+    assert read_run_info(run_dir)["resumes"] == []
 
 
 def test_a_resume_without_config_names_it_and_leaves_the_folder_as_it_was(tmp_path):
@@ -288,7 +318,8 @@ def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
 
 def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_model(tmp_path, monkeypatch):
     """SB3's order: a vector step's callbacks run before that step's update, so the evaluation at the final step
-    (and best_model.zip saved by it) sees the model before its last gradient step (docs/guide/train.md, "The run folder")."""
+    (and best_model.zip saved by it) sees the model before its last gradient step (docs/guide/train.md, "The run
+    folder")."""
     from sb3_mtte.common import evaluation
     from sb3_mtte.envs import make_mt_env
     from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback

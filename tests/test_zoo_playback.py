@@ -58,7 +58,7 @@ def test_enjoy_and_resume_pass_over_a_newer_folder_without_a_model(tmp_path, cap
     out = capsys.readouterr().out
     assert f"Passing over {ENV}_2 (no model): the latest run with one is {run}" in out
     assert "Loading latest experiment, id=1" in out
-    main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--resume", "-n", "200", "--no-progress"])
+    main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--resume", "-n", "400", "--no-progress"])
     assert f"Resuming {run} from" in capsys.readouterr().out
 
 

@@ -10,7 +10,12 @@
 - ``hyperparams`` (as loaded, JSON-friendly), ``command``, ``zoo_args``;
 - ``versions`` (python, sb3_mtte, torch, stable_baselines3, rl_zoo3, gymnasium, metaworld, numpy, mujoco),
   ``git`` (commit, dirty flag and branch of the source tree of ``sb3_mtte``), ``host``, ``device``;
-- ``started``, ``resumes`` (one entry per resume: time and checkpoint), ``timesteps`` and ``finished``.
+- ``started``, ``resumes`` (one entry per resume: time and checkpoint), ``timesteps`` and ``finished``;
+- ``launcher`` (the launcher's own options: ``tensorboard``, ``keep_buffers``, ``align_checkpoints``);
+- ``stopped`` (a run stopped by Ctrl-C: its ``timesteps``, ``time`` and the ``checkpoint`` a resume continues
+  from; null once a resume finishes it), ``ended`` and ``final_model`` (a finished run's model file).
+
+Only a run that reached its budget has ``finished: true`` and a final model ``<env>.zip``.
 """
 
 from __future__ import annotations
@@ -141,7 +146,8 @@ def collect_run_info(
     :param benchmark: the benchmark the env id names (the env id when None).
     :param hyperparams: the hyperparameters as loaded.
     :param command: the command line (``sys.orig_argv`` joined when None).
-    :param fields: any further fields (``n_tasks``, ``task_names``, ``n_timesteps``, ...).
+    :param fields: any further fields (``n_tasks``, ``task_names``, ``n_timesteps``, ...). ``env_protocol`` says how
+        the training envs differ from the benchmark's (:func:`sb3_mtte.envs.env_protocol`; None for a toy).
     """
     info: dict[str, Any] = {
         "algo": algo,
@@ -165,12 +171,17 @@ def collect_run_info(
 
 
 def write_run_info(run_dir: str | os.PathLike, info: Mapping[str, Any]) -> Path:
-    """Write ``run_info.json`` into ``run_dir`` (atomically) and return its path."""
+    """Write ``run_info.json`` into ``run_dir`` (atomically: a write that fails leaves the old file and no temporary
+    one) and return its path."""
     path = Path(run_dir) / RUN_INFO_FILE
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(to_jsonable(dict(info)), indent=2) + "\n")
-    os.replace(tmp, path)
+    try:
+        tmp.write_text(json.dumps(to_jsonable(dict(info)), indent=2) + "\n")
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
     return path
 
 

@@ -6,6 +6,9 @@
 - :mod:`~sb3_mtte.experiments.zoo.configs`: a zoo key's hyperparameters (family file + variant overrides);
 - :mod:`~sb3_mtte.experiments.zoo.training_callbacks`: checkpoints, evaluation and the optuna trial score;
 - :mod:`~sb3_mtte.experiments.zoo.run_checkpoints`: the resumable checkpoints of a run folder;
+- :mod:`~sb3_mtte.experiments.zoo.run_settings`: the settings a run folder records, which ``--resume`` restores;
+- :mod:`~sb3_mtte.experiments.zoo.resume`: what ``--resume`` and ``--exp-id`` do with a folder that holds a run;
+- :mod:`~sb3_mtte.experiments.zoo.stopping`: Ctrl-C during training, which stops at a checkpoint;
 - :mod:`~sb3_mtte.experiments.zoo.run_logs`: the logs of a run folder;
 - :mod:`~sb3_mtte.experiments.zoo.sweep`: a grid of runs on Ray Tune;
 - :mod:`~sb3_mtte.experiments.zoo.adapter`: every reach into rl-zoo3 past its public API.

@@ -20,28 +20,16 @@ from rl_zoo3 import hyperparams_opt
 
 from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.cli import command_prog, device_error
+from sb3_mtte.experiments.cli import command_prog, device_error, output_folder_error
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
 from sb3_mtte.experiments.zoo import adapter
 from sb3_mtte.experiments.zoo.configs import missing_entries_message, zoo_hyperparameters
 from sb3_mtte.experiments.zoo.manager import LaunchOptions, MultiTaskExperimentManager
 from sb3_mtte.experiments.zoo.parsers import TRAIN_DESCRIPTION, add_launcher_options, zoo_parser
+from sb3_mtte.experiments.zoo.resume import NothingToDo
 from sb3_mtte.experiments.zoo.run_checkpoints import latest_run_with_model
-
-TRACKED_FLAGS: dict[str, tuple[str, ...]] = {
-    "eval_freq": ("--eval-freq",),
-    "eval_episodes": ("--eval-episodes",),
-    "save_freq": ("--save-freq",),
-    "n_timesteps": ("-n", "--n-timesteps"),
-    "env_kwargs": ("--env-kwargs",),
-    "eval_env_kwargs": ("--eval-env-kwargs",),
-    "vec_env": ("--vec-env",),
-    "log_interval": ("--log-interval",),
-    "save_replay_buffer": ("--save-replay-buffer",),
-    "tensorboard_log": ("-tb", "--tensorboard-log"),
-}
-"""rl-zoo flags whose presence on the command line matters (file defaults, resumed runs' own settings)."""
+from sb3_mtte.experiments.zoo.run_settings import given_settings, has_flag, resume_refusal
 
 
 def register_algos() -> None:
@@ -64,11 +52,6 @@ def flag_value(argv: Sequence[str], *names: str) -> str | None:
             elif arg.startswith(name + "="):
                 value = arg.split("=", 1)[1]
     return value
-
-
-def has_flag(argv: Sequence[str], *names: str) -> bool:
-    """Whether one of the options ``names`` is in ``argv``."""
-    return any(arg in names or any(arg.startswith(n + "=") for n in names) for arg in argv)
 
 
 def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
@@ -127,9 +110,21 @@ def check_conf_file(zoo_argv: Sequence[str]) -> None:
     )
 
 
+def check_output_folders(zoo_argv: Sequence[str], resume_dir: str | None) -> None:
+    """Refuse a log folder (``-f``), tensorboard folder (``-tb``) or run folder to resume that cannot be made and
+    written (a file on the way, no permission), in one line, before any env is built."""
+    folders = [("-f", flag_value(zoo_argv, "-f", "--log-folder") or "logs")]
+    folders.append(("-tb", flag_value(zoo_argv, "-tb", "--tensorboard-log") or ""))
+    folders.append(("--resume", resume_dir or ""))
+    for flag, folder in folders:
+        problem = output_folder_error(flag, folder) if folder else None
+        if problem:
+            raise SystemExit(problem)
+
+
 def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None) -> tuple[str, dict[str, Any]]:
-    """The run folder to resume and its saved launcher options (progress bar included); adds the run's seed and log
-    folder to ``zoo_argv``."""
+    """The run folder to resume and its progress-bar setting; adds the run's seed and log folder to
+    ``zoo_argv``."""
     if env_id is None:
         raise SystemExit("--resume needs --algo and --env (or a run folder: --resume RUN_DIR).")
     log_folder = flag_value(zoo_argv, "-f", "--log-folder") or "logs"
@@ -144,37 +139,35 @@ def _resume_run(resume: str, zoo_argv: list[str], algo: str, env_id: str | None)
         zoo_argv += ["--seed", str(info["seed"])]
     if resume and not has_flag(zoo_argv, "-f", "--log-folder"):
         zoo_argv += ["-f", str(resume_dir.parent.parent)]
-    saved = dict(info.get("launcher") or {})
-    saved["progress"] = (info.get("zoo_args") or {}).get("progress", True)
-    return str(resume_dir), saved
+    return str(resume_dir), {"progress": (info.get("zoo_args") or {}).get("progress", True)}
 
 
 def _launch_options(
-    ours: argparse.Namespace, zoo_argv: list[str], algo: str, env_id: str, saved: dict[str, Any]
+    ours: argparse.Namespace, zoo_argv: list[str], algo: str, env_id: str, given: frozenset[str]
 ) -> LaunchOptions:
-    """Launcher options from the command line, else the resumed run's, else the defaults."""
-
-    def choose(given: Any, key: str, default: Any) -> Any:
-        return given if given is not None else saved.get(key, default)
-
-    no_align, no_tensorboard = ours.no_align_checkpoints, ours.no_tensorboard
+    """Launcher options from the command line, else the defaults (a resumed run's own:
+    :meth:`~sb3_mtte.experiments.zoo.resume.RunFolderSettings.restore_run_settings`)."""
     uses_conf = has_flag(zoo_argv, "-conf", "--conf-file")
     return LaunchOptions(
         exp_id=ours.exp_id,
-        flags_given=frozenset(dest for dest, names in TRACKED_FLAGS.items() if has_flag(zoo_argv, *names)),
-        keep_buffers=choose(ours.keep_buffers, "keep_buffers", 1),
-        align_checkpoints=choose(None if no_align is None else not no_align, "align_checkpoints", True),
-        tensorboard=choose(None if no_tensorboard is None else not no_tensorboard, "tensorboard", True),
+        flags_given=given,
+        keep_buffers=1 if ours.keep_buffers is None else ours.keep_buffers,
+        align_checkpoints=not ours.no_align_checkpoints,
+        tensorboard=not ours.no_tensorboard,
         hyperparams=None if uses_conf else zoo_hyperparameters(algo, [env_id]),
     )
 
 
 def train(argv: Sequence[str]) -> None:
     """``train``: rl-zoo's train with the launcher's additions (see the module docstring)."""
+    given = given_settings(argv)  # before the launcher adds flags of its own
     ours, zoo_argv = _launcher_parser().parse_known_args(list(argv))
     if has_flag(zoo_argv, "-h", "--help"):  # rl-zoo's parser prints the help and exits
         run_zoo_train(zoo_argv, LaunchOptions())
         return
+    refusal = resume_refusal(zoo_argv) if ours.resume is not None else None
+    if refusal:
+        raise SystemExit(refusal)
     if ours.resume:  # --resume RUN_DIR: the run's own algorithm and env unless given
         info = run_info.read_run_info(ours.resume) or {}
         if not info:
@@ -198,11 +191,12 @@ def train(argv: Sequence[str]) -> None:
         raise SystemExit(problem)
     register_algos()
     resume_dir, saved = (None, {}) if ours.resume is None else _resume_run(ours.resume, zoo_argv, algo, env_id)
+    check_output_folders(zoo_argv, resume_dir)
     if ours.resume is None and not has_flag(zoo_argv, "--vec-env"):  # a resumed run keeps its own (args.yml)
         zoo_argv += ["--vec-env", default_vec_env(env_id)]
     if not ours.no_progress and saved.get("progress", True) and not has_flag(zoo_argv, "-P", "--progress"):
         zoo_argv.append("-P")  # a resumed run keeps its own setting
-    launch = _launch_options(ours, zoo_argv, algo, env_id, saved)
+    launch = _launch_options(ours, zoo_argv, algo, env_id, given)
     missing = None if resume_dir or launch.hyperparams is None else missing_entries_message(algo, [env_id])
     if missing:
         raise SystemExit(missing)
@@ -218,13 +212,17 @@ def run_zoo_train(zoo_argv: list[str], launch: LaunchOptions) -> None:
         return MultiTaskExperimentManager(*args, launch=launch, **kwargs)
 
     parser = zoo_parser(TRAIN_DESCRIPTION, launcher_options=True, prog=command_prog("train"))
-    adapter.run_train(zoo_argv, make_manager, parser)
+    try:
+        adapter.run_train(zoo_argv, make_manager, parser)
+    except NothingToDo as done:  # the run folder already holds what the command asks for
+        print(done)
 
 
 __all__ = [
     "check_algo",
     "check_budget",
     "check_conf_file",
+    "check_output_folders",
     "flag_value",
     "has_flag",
     "latest_run_dir",

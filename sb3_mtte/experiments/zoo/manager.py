@@ -10,7 +10,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import shutil
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,17 +18,35 @@ from typing import Any
 import yaml
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import ProgressBarCallback
-from stable_baselines3.common.vec_env import SubprocVecEnv, VecEnv
+from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.common.utils import get_task_names
-from sb3_mtte.envs import check_env_kwargs, reward_function_version
+from sb3_mtte.envs import (
+    backend_of,
+    check_env_kwargs,
+    env_protocol,
+    envpool_vec_env_cls,
+    official_env_kwargs,
+    reward_function_version,
+)
+from sb3_mtte.envs import envpool_envs
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
 from sb3_mtte.experiments.zoo.adapter import ZooExperimentManager
 from sb3_mtte.experiments.zoo.configs import LAUNCHER_YAML_KEYS, family_config_path, unknown_key_message
-from sb3_mtte.experiments.zoo.run_checkpoints import Checkpoint, find_latest_checkpoint, load_model, restart_envs
+from sb3_mtte.experiments.zoo.resume import RunFolderSettings
+from sb3_mtte.experiments.zoo.run_checkpoints import (
+    Checkpoint,
+    atomic_save,
+    final_checkpoint,
+    find_latest_checkpoint,
+    load_model,
+    missing_folders,
+    remove_made_folders,
+    restart_envs,
+)
 from sb3_mtte.experiments.zoo.run_logs import make_run_logger, set_aside_monitor_files, trim_jsonl
+from sb3_mtte.experiments.zoo.stopping import Stop, StopRequest, TrainingStopped, end_stopped_run
 from sb3_mtte.experiments.zoo.training_callbacks import (
     MultiTaskCheckpointCallback,
     SuccessTrialEvalCallback,
@@ -45,6 +62,7 @@ class LaunchOptions:
     resume_dir: str | None = None
     exp_id: int | None = None
     flags_given: frozenset[str] = frozenset()
+    """The settings the command line gives (:func:`~sb3_mtte.experiments.zoo.run_settings.given_settings`)."""
     keep_buffers: int = 1
     align_checkpoints: bool = True
     tensorboard: bool = True
@@ -53,7 +71,7 @@ class LaunchOptions:
     its ``-conf`` file."""
 
 
-class MultiTaskExperimentManager(ZooExperimentManager):
+class MultiTaskExperimentManager(RunFolderSettings, ZooExperimentManager):
     """rl-zoo's ExperimentManager with one sub-env per task, multi-task evaluation, resumable checkpoints
     and run metadata (see the module docstring).
 
@@ -78,19 +96,22 @@ class MultiTaskExperimentManager(ZooExperimentManager):
         if self.launch.resume_dir is not None:
             self.save_path = os.path.normpath(self.launch.resume_dir)
             self.params_path = f"{self.save_path}/{self.env_name}"
-            self._restore_run_args()
+            self.restore_run_settings()
+            self.refuse_a_finished_resume()
         elif self.launch.exp_id is not None:
             self.save_path = os.path.join(self.log_path, f"{self.env_name}_{self.launch.exp_id}")
             self.params_path = f"{self.save_path}/{self.env_name}"
-            if (Path(self.save_path) / run_info.RUN_INFO_FILE).is_file():
-                raise SystemExit(f"{self.save_path} already holds a run: use --resume {self.save_path}.")
+            self.check_the_run_folder()
         self.checkpoint: Checkpoint | None = None
         self.resumed = False  # from a checkpoint
         self.resume_step: int | None = None  # step the logs are trimmed to (0: resumed without checkpoint)
         self.checkpoint_callback: MultiTaskCheckpointCallback | None = None
         self.eval_callback: ZooEvalCallback | None = None
         self._eval_env: VecEnv | None = None
+        self.stop_request = StopRequest()
+        self.stopped: Stop | None = None
         self._check_env_kwargs()
+        self._prepare_backend()
 
     def _check_env_kwargs(self) -> None:
         """Refuse an env keyword the benchmark lacks (the nearest valid one named), or a ``reward_function_version``
@@ -100,31 +121,21 @@ class MultiTaskExperimentManager(ZooExperimentManager):
                 check_env_kwargs(self.benchmark, env_kwargs)
             except (TypeError, ValueError) as error:
                 raise SystemExit(f"{flag}: {error}") from None
+        if backend_of(self.eval_env_kwargs_given) != "metaworld":
+            raise SystemExit(
+                "--eval-env-kwargs: the evaluation runs on Meta-World's own envs: leave backend out of it."
+            )
 
-    def _restore_run_args(self) -> None:
-        """Resuming: take the run's own command-line settings (its ``args.yml``) unless given again now."""
-        path = Path(self.params_path) / "args.yml"
-        if not path.is_file():
+    def _prepare_backend(self) -> None:
+        """``backend:'envpool'``: refuse a missing EnvPool before any folder is made, and step the pools in
+        parallel (each pool's step is sent before any is received)."""
+        if backend_of(self.env_kwargs) != "envpool":
             return
-        with open(path) as file:
-            saved = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
-        given = self.launch.flags_given
-        if "n_timesteps" not in given:
-            info = run_info.read_run_info(self.save_path) or {}
-            self.n_timesteps = int(info.get("n_timesteps", saved.get("n_timesteps", -1)))
-        if "env_kwargs" not in given:
-            self.env_kwargs = dict(saved.get("env_kwargs") or {})
-        if "eval_env_kwargs" not in given:
-            self.eval_env_kwargs_given = saved.get("eval_env_kwargs")
-            self.eval_env_kwargs = dict(self.eval_env_kwargs_given or self.env_kwargs)
-        if "vec_env" not in given and saved.get("vec_env") == "subproc":
-            self.vec_env_class.vec_env_cls = SubprocVecEnv
-        if "log_interval" not in given and "log_interval" in saved:
-            self.log_interval = int(saved["log_interval"])
-        if "save_replay_buffer" not in given and saved.get("save_replay_buffer"):
-            self.save_replay_buffer = True
-        if "tensorboard_log" not in given and saved.get("tensorboard_log"):
-            self.tensorboard_dir = os.path.join(saved["tensorboard_log"], self.env_name)
+        try:
+            envpool_envs.require_envpool()
+        except ImportError as error:
+            raise SystemExit(f"--env-kwargs: {error}") from None
+        self.vec_env_class.vec_env_cls = envpool_vec_env_cls(self.vec_env_class.vec_env_cls)
 
     # ---- hyperparameters
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -151,6 +162,8 @@ class MultiTaskExperimentManager(ZooExperimentManager):
                 self.n_eval_episodes = int(value)
             else:
                 self.save_freq = int(value)
+        if self.eval_env_kwargs_given is None:  # evaluated on Meta-World's own envs, also when trained on EnvPool
+            self.eval_env_kwargs = official_env_kwargs(self.env_kwargs)
         saved = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
         saved.update({key: value for key, value in self._zoo_yaml_values().items()})
         saved = OrderedDict((key, saved[key]) for key in sorted(saved))
@@ -170,6 +183,7 @@ class MultiTaskExperimentManager(ZooExperimentManager):
         print(f"Loading hyperparameters from: {config}")
         with open(config) as file:
             hyperparams = dict(yaml.load(file, Loader=yaml.UnsafeLoader))
+        self.hyperparameter_overrides(hyperparams)
         if self.custom_hyperparams is not None:
             hyperparams.update(self.custom_hyperparams)
         return hyperparams
@@ -217,14 +231,15 @@ class MultiTaskExperimentManager(ZooExperimentManager):
                 best_model_save_path=self.save_path,
                 verbose=self.verbose,
             )
-        if self.save_freq > 0 and not self.optimize_hyperparameters:
+        if not self.optimize_hyperparameters:  # also without --save-freq: a Ctrl-C saves a checkpoint
             self.checkpoint_callback = MultiTaskCheckpointCallback(
-                save_freq=self.save_freq,
+                save_freq=self.save_freq if self.save_freq > 0 else None,
                 save_path=self.save_path,
                 seed=self.seed,
                 eval_env=self._eval_env,
                 keep_buffers=self.launch.keep_buffers,
                 align_to_episodes=self.launch.align_checkpoints,
+                stop_request=self.stop_request,
                 verbose=self.verbose,
             )
             self.callbacks.append(self.checkpoint_callback)
@@ -235,13 +250,13 @@ class MultiTaskExperimentManager(ZooExperimentManager):
     def setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
         """rl-zoo's set-up, or a resumed run's; a ``ValueError`` that this package or rl-zoo raises on the
         hyperparameters, env or model (a value out of range) ends with its one line, any other keeps its traceback.
-        A new run whose set-up fails leaves no folder behind (later commands would take it for the latest run)."""
-        new_folder = self.launch.resume_dir is None and not os.path.exists(self.save_path)
+        A new run whose set-up fails leaves no folder behind, the folders above it that it made included (later
+        commands would take a run folder for the latest run)."""
+        made = [] if self.launch.resume_dir is not None else missing_folders(Path(self.save_path))
         try:
             return self._setup_experiment()
         except BaseException:
-            if new_folder:
-                shutil.rmtree(self.save_path, ignore_errors=True)
+            remove_made_folders(made)
             raise
 
     def _setup_experiment(self) -> tuple[BaseAlgorithm, dict[str, Any]] | None:
@@ -260,7 +275,7 @@ class MultiTaskExperimentManager(ZooExperimentManager):
     def _setup_resume(self) -> tuple[BaseAlgorithm, dict[str, Any]]:
         run_dir = Path(self.save_path)
         self.checkpoint = find_latest_checkpoint(run_dir)
-        final = self._final_checkpoint(run_dir)
+        final = final_checkpoint(run_dir, str(self.env_name))
         if final is not None and (self.checkpoint is None or final.timesteps > self.checkpoint.timesteps):
             self.checkpoint = final
         step = self.checkpoint.timesteps if self.checkpoint is not None else 0
@@ -299,15 +314,6 @@ class MultiTaskExperimentManager(ZooExperimentManager):
     def saves_config(self) -> bool:
         return self.launch.resume_dir is None  # a resumed run keeps its own config.yml, args.yml and command
 
-    def _final_checkpoint(self, run_dir: Path) -> Checkpoint | None:
-        """The final model and replay buffer of a run that finished (``--save-replay-buffer``), if any."""
-        info = run_info.read_run_info(run_dir) or {}
-        model, buffer = run_dir / f"{self.env_name}.zip", run_dir / "replay_buffer.pkl"
-        if not (info.get("finished") and model.is_file() and buffer.is_file()):
-            return None
-        steps = int(read_checkpoint_data(model).get("num_timesteps", 0))
-        return Checkpoint(steps, model, buffer, {"timesteps": steps, "final_model": True})
-
     def _write_run_info(self, model: BaseAlgorithm, saved: dict[str, Any]) -> None:
         env = model.get_env()
         episode_length = None
@@ -324,6 +330,7 @@ class MultiTaskExperimentManager(ZooExperimentManager):
             task_names=get_task_names(env) if env is not None else benchmark_task_names(self.benchmark),
             benchmark_seed=self.seed,
             reward_function_version=reward_function_version(self.benchmark, self.env_kwargs),
+            env_protocol=env_protocol(self.benchmark, self.env_kwargs),
             episode_length=episode_length,
             n_timesteps=self.n_timesteps,
             run_dir=os.path.abspath(self.save_path),
@@ -338,6 +345,8 @@ class MultiTaskExperimentManager(ZooExperimentManager):
 
     # ---- training
     def learn(self, model: BaseAlgorithm) -> None:
+        """Train to ``n_timesteps`` (a resumed run: from its checkpoint); Ctrl-C stops the run
+        (:mod:`~sb3_mtte.experiments.zoo.stopping`) and :meth:`save_trained_model` ends it."""
         step = self.resume_step
         tb_dir = None
         if self.tensorboard_dir is not None:
@@ -346,9 +355,25 @@ class MultiTaskExperimentManager(ZooExperimentManager):
         if step is not None and self.eval_callback is not None:
             self.eval_callback.load_history(step)
             self.eval_callback.n_calls = step // self.n_tasks
-        if not self.resumed:
-            super().learn(model)
-            return
+        budget = self.n_timesteps - model.num_timesteps if self.resumed else self.n_timesteps
+        try:
+            if budget > 0:
+                with self.stop_request:
+                    model.learn(budget, reset_num_timesteps=not self.resumed, **self._learn_kwargs())
+            else:
+                print(f"Nothing to do: the run is at {model.num_timesteps} of {self.n_timesteps} steps.")
+        except TrainingStopped as stop:
+            self.stopped = Stop(stop.checkpoint.timesteps, stop.checkpoint)
+        except KeyboardInterrupt:  # a second Ctrl-C: at once, without a checkpoint
+            self.stopped = Stop(int(model.num_timesteps), None)
+        finally:
+            if self.callbacks and budget > 0:
+                self.callbacks[0].on_training_end()  # the progress bar, as rl-zoo does
+            with contextlib.suppress(EOFError):
+                model.get_env().close()  # type: ignore[union-attr]
+
+    def _learn_kwargs(self) -> dict[str, Any]:
+        """rl-zoo's arguments of ``learn``: its log interval (-1: the model's, below -1: none) and callbacks."""
         kwargs: dict[str, Any] = {}
         if self.log_interval > -1:
             kwargs["log_interval"] = self.log_interval
@@ -356,22 +381,24 @@ class MultiTaskExperimentManager(ZooExperimentManager):
             kwargs["log_interval"] = None
         if self.callbacks:
             kwargs["callback"] = self.callbacks
-        remaining = self.n_timesteps - model.num_timesteps
-        try:
-            if remaining > 0:
-                model.learn(remaining, reset_num_timesteps=False, **kwargs)
-            else:
-                print(f"Nothing to do: the run is at {model.num_timesteps} of {self.n_timesteps} steps.")
-        except KeyboardInterrupt:
-            pass
-        finally:
-            if self.callbacks and remaining > 0:
-                self.callbacks[0].on_training_end()
-            with contextlib.suppress(EOFError):
-                model.get_env().close()  # type: ignore[union-attr]
+        return kwargs
 
     def save_trained_model(self, model: BaseAlgorithm) -> None:
-        super().save_trained_model(model)
+        """Save the final model (and the replay buffer with ``--save-replay-buffer``), each whole or not at all; a
+        stopped run saves no final model (:func:`~sb3_mtte.experiments.zoo.stopping.end_stopped_run`)."""
+        if self._eval_env is not None:
+            self._eval_env.close()
+        if self.stopped is not None:
+            end_stopped_run(model, self.stopped, self.save_path, self.n_timesteps)
+        print(f"Saving to {self.save_path}")
+        atomic_save(model.save, Path(self.save_path) / f"{self.env_name}.zip")
+        if hasattr(model, "save_replay_buffer") and self.save_replay_buffer:
+            print("Saving replay buffer")
+            atomic_save(model.save_replay_buffer, Path(self.save_path) / "replay_buffer.pkl")
+        if self.normalize:
+            vec_normalize = model.get_vec_normalize_env()
+            assert vec_normalize is not None
+            atomic_save(vec_normalize.save, Path(self.params_path) / "vecnormalize.pkl")
         run_info.update_run_info(
             self.save_path,
             timesteps=int(model.num_timesteps),
@@ -379,9 +406,8 @@ class MultiTaskExperimentManager(ZooExperimentManager):
             finished=bool(model.num_timesteps >= self.n_timesteps),
             ended=run_info.now(),
             final_model=f"{self.env_name}.zip",
+            stopped=None,
         )
-        if self._eval_env is not None:
-            self._eval_env.close()
 
 
 def _raised_by(error: BaseException, packages: tuple[str, ...]) -> bool:

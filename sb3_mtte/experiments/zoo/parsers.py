@@ -34,10 +34,18 @@ def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
         const="",
         default=None,
         metavar="RUN_DIR",
-        help="continue the latest checkpoint of RUN_DIR (without RUN_DIR: of the latest run of --algo/--env in -f)",
+        help="continue the latest checkpoint of RUN_DIR (without RUN_DIR: of the latest run of --algo/--env in -f) "
+        "with the run's own settings; a flag given again overrides one, and says so. A finished run is left as it "
+        "is, unless -n is larger than its steps",
     )
     parser.add_argument(
-        "--exp-id", type=int, default=None, metavar="N", help="run folder <env>_N (default: the next free N)"
+        "--exp-id",
+        type=int,
+        default=None,
+        metavar="N",
+        help="run folder <env>_N (default: the next free N). If it holds a finished run with the settings given, "
+        "the command says so and exits 0 without training, so it can be run twice; a stopped run there is "
+        "continued with --resume",
     )
     parser.add_argument(
         "--no-progress", action="store_true", help="no progress bar (a resumed run keeps its own unless -P is given)"

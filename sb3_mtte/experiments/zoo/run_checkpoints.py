@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
+import shutil
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -90,6 +92,37 @@ def latest_run_with_model(log_folder: str | os.PathLike, algo: str, env_name: st
     return chosen
 
 
+def final_checkpoint(run_dir: str | os.PathLike, env_name: str) -> Checkpoint | None:
+    """The final model and replay buffer of a run that finished (``--save-replay-buffer``), if any."""
+    run_dir = Path(run_dir)
+    info_path = run_dir / "run_info.json"
+    info = json.loads(info_path.read_text()) if info_path.is_file() else {}
+    model, buffer = run_dir / f"{env_name}.zip", run_dir / "replay_buffer.pkl"
+    if not (info.get("finished") and model.is_file() and buffer.is_file()):
+        return None
+    steps = int(read_checkpoint_data(model).get("num_timesteps", 0))
+    return Checkpoint(steps, model, buffer, {"timesteps": steps, "final_model": True})
+
+
+def missing_folders(path: Path) -> list[Path]:
+    """``path`` and each folder above it that does not exist yet, deepest first."""
+    missing = []
+    while not path.exists() and path != path.parent:
+        missing.append(path)
+        path = path.parent
+    return missing
+
+
+def remove_made_folders(made: list[Path]) -> None:
+    """Remove the run folder a failed set-up made (the first of ``made``), then each folder above it that it made
+    and that is still empty (another run may have begun there meanwhile)."""
+    if made:
+        shutil.rmtree(made[0], ignore_errors=True)
+    for folder in made[1:]:
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
 def restart_seed(seed: int, timesteps: int, stream: int = 0) -> int:
     """Seed of the envs restarted at a checkpoint: a function of the run seed, the step and the env (0: train)."""
     state = np.random.SeedSequence([int(seed) & 0xFFFFFFFF, int(seed) >> 32, int(timesteps), stream])
@@ -115,9 +148,15 @@ def restart_envs(model: BaseAlgorithm, eval_env: VecEnv | None, seed: int, times
 
 
 def atomic_save(save: Callable[[str], None], path: Path) -> None:
+    """Write ``path`` with ``save`` under a temporary name, then rename it: a reader sees the whole file or none. A
+    write that fails (a full disk, Ctrl-C) removes its temporary file and leaves ``path`` as it was."""
     tmp = path.with_name(f".tmp_{path.name}")
-    save(str(tmp))
-    os.replace(tmp, path)
+    try:
+        save(str(tmp))
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def load_model(

@@ -104,8 +104,12 @@ def trim_jsonl(path: Path, up_to_timesteps: int) -> None:
             continue  # a line cut by the kill
         kept.append(line + "\n")
     tmp = path.with_name(f".tmp_{path.name}")
-    tmp.write_text("".join(kept))
-    os.replace(tmp, path)
+    try:
+        tmp.write_text("".join(kept))
+        os.replace(tmp, path)
+    except BaseException:  # the log stays as it was, with no partial copy beside it
+        tmp.unlink(missing_ok=True)
+        raise
 
 
 def set_aside_monitor_files(run_dir: Path) -> None:
