@@ -14,6 +14,17 @@ file system shared at OUT). Results land in the zoo layout that ``sb3-mtte plot 
 ``--resume`` re-runs the same trials: finished ones are skipped and the others continue from their last
 checkpoint (a retried trial, ``--retries``, does the same). Ray Tune's own records go to ``OUT/_ray``.
 
+Several runs share a machine (:func:`trial_resources`):
+
+==================  ==============================================================================================
+resource            each trial's share
+==================  ==============================================================================================
+GPU                 ``--gpus-per-trial``; by default 1/:data:`TRIALS_PER_GPU` of one with CUDA, none without
+CPU cores           ``--cpus-per-trial`` cores of its own, pinned (:mod:`~sb3_mtte.experiments.zoo.sweep_trial`)
+torch threads       ``--num-threads`` of its cores, unless the zoo flags give one
+process settings    :func:`sb3_mtte.tune_process`, applied before torch loads in the worker
+==================  ==============================================================================================
+
 Ray is an optional dependency: ``pip install "sb3-mtte[ray]"`` (or ``pip install "ray[tune]"``).
 """
 
@@ -21,6 +32,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 from collections.abc import Sequence
@@ -37,8 +49,12 @@ from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, regist
 from sb3_mtte.experiments.variants import algo_classes
 from sb3_mtte.experiments.zoo import launcher
 from sb3_mtte.experiments.zoo.configs import missing_entries_message
+from sb3_mtte.experiments.zoo.sweep_trial import run_trial
+from sb3_mtte.process import SPIN_VARIABLES
 
 SWEEP_FILE = "sweep.json"
+TRIALS_PER_GPU = 4
+"""Trials that share one GPU by default (``--gpus-per-trial`` 0.25): one run leaves the GPU idle most of a step."""
 BUDGETS = ("full", *BUDGET_SUFFIXES)
 
 
@@ -113,10 +129,31 @@ def trial_command(trial: dict[str, Any], out: Path, extra: Sequence[str], cpus: 
     return argv + list(extra)
 
 
-def run_trial(config: dict[str, Any]) -> dict[str, Any]:
-    """Ray Tune trainable: run (or resume, or skip when finished) one zoo training run and report its result."""
-    from ray import tune
+def trial_resources(cpus_per_trial: float, gpus_per_trial: float | None, cuda_count: int) -> dict[str, float]:
+    """What Ray reserves for each trial: ``cpus_per_trial`` CPUs, and a share of a GPU where there is one.
 
+    :param cpus_per_trial: ``--cpus-per-trial``.
+    :param gpus_per_trial: ``--gpus-per-trial``; None: ``1 / TRIALS_PER_GPU`` with CUDA, none without.
+    :param cuda_count: the CUDA devices of this machine.
+    """
+    if gpus_per_trial is None:
+        gpus_per_trial = 1 / TRIALS_PER_GPU if cuda_count > 0 else 0.0
+    resources = {"cpu": float(cpus_per_trial)}
+    if gpus_per_trial > 0:
+        resources["gpu"] = float(gpus_per_trial)
+    return resources
+
+
+def cuda_device_count() -> int:
+    """The CUDA devices torch sees here (0 without CUDA)."""
+    import torch as th
+
+    return th.cuda.device_count() if th.cuda.is_available() else 0
+
+
+def run_one(config: dict[str, Any]) -> dict[str, Any]:
+    """Run (or resume, or skip when finished) one zoo training run and return its result; Ray runs it through
+    :func:`~sb3_mtte.experiments.zoo.sweep_trial.run_trial`."""
     trial = config["trial"]
     run_dir = Path(trial["run_dir"])
     info = run_info.read_run_info(run_dir)
@@ -128,7 +165,6 @@ def run_trial(config: dict[str, Any]) -> dict[str, Any]:
     success = last_success(run_dir)
     if success is not None:
         result["success"] = success
-    tune.report(result)
     return result
 
 
@@ -169,12 +205,15 @@ def run_sweep(args: argparse.Namespace, extra: Sequence[str], ray: Any) -> list[
         init_kwargs["address"] = args.address
     elif args.num_cpus is not None:
         init_kwargs["num_cpus"] = args.num_cpus
+    spin = {name: os.environ[name] for name in SPIN_VARIABLES if name in os.environ}
+    if spin:  # a cluster's workers get the driver's OpenMP wait policy too
+        init_kwargs["runtime_env"] = {"env_vars": spin}
     ray.init(**init_kwargs)
-    resources = {"cpu": args.cpus_per_trial, "gpu": args.gpus_per_trial}
+    resources = trial_resources(args.cpus_per_trial, args.gpus_per_trial, cuda_device_count())
     tuner = tune.Tuner(
         tune.with_resources(run_trial, resources),
         param_space={
-            "trial": tune.grid_search(trials),
+            "trial": tune.grid_search([{**trial, "index": i} for i, trial in enumerate(trials)]),
             "out": str(out),
             "extra": list(extra),
             "cpus": args.cpus_per_trial,
@@ -251,8 +290,9 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     parser.add_argument(
         "--gpus-per-trial",
         type=float,
-        default=0.0,
-        help="GPUs Ray reserves for each run, a fraction shares one (default 0)",
+        default=None,
+        help=f"GPUs Ray reserves for each run, a fraction shares one (default: 1/{TRIALS_PER_GPU} with CUDA, 0 "
+        "without); each run is also pinned to its own --cpus-per-trial cores",
     )
     parser.add_argument("--max-concurrent", type=int, default=0, help="max trials at once (0: as resources allow)")
     parser.add_argument("--retries", type=int, default=0, help="retries of a failed trial (each resumes its run)")
@@ -275,6 +315,8 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
             missing = missing_entries_message(algo, [env_id_for(env, args.budget) for env in args.envs], "-- -conf")
             if missing:
                 parser.error(missing)
+    if args.gpus_per_trial is not None and args.gpus_per_trial < 0:
+        parser.error(f"--gpus-per-trial {args.gpus_per_trial}: give 0 or more (a fraction shares one GPU)")
     problem = output_folder_error("--out", args.out)
     try:
         ray = import_ray()
