@@ -28,17 +28,8 @@ import sys
 import time
 from pathlib import Path
 
-PROCESS_VARIABLES = (
-    "OMP_NUM_THREADS",
-    "OMP_WAIT_POLICY",
-    "GOMP_SPINCOUNT",
-    "MKL_NUM_THREADS",
-    "SB3_MTTE_MALLOC",
-    "MALLOC_MMAP_THRESHOLD_",
-    "MALLOC_TRIM_THRESHOLD_",
-    "MALLOC_TOP_PAD_",
-    "MALLOC_MMAP_MAX_",
-)
+from process_defaults import USER_VARIABLES as PROCESS_VARIABLES  # the variables a worker starts without
+
 DEFAULT_SETTINGS = (
     "default=",
     "torch-first=",
