@@ -14,7 +14,7 @@ from sb3_mtte.version import __version__
 
 if TYPE_CHECKING:
     from sb3_mtte.common.buffers import MultiTaskReplayBuffer
-    from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
+    from sb3_mtte.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
     from sb3_mtte.envs import OneHotTaskWrapper, get_task_names, make_mt_env
     from sb3_mtte.mtsac import MTSAC
     from sb3_mtte.mtsacte import MTSACTE
@@ -22,11 +22,11 @@ if TYPE_CHECKING:
 _MODULE_OF = {
     "MTSAC": "sb3_mtte.mtsac",
     "MTSACTE": "sb3_mtte.mtsacte",
-    "MultiTaskEvalCallback": "sb3_mtte.common.evaluation",
+    "MultiTaskEvalCallback": "sb3_mtte.evaluation",
     "MultiTaskReplayBuffer": "sb3_mtte.common.buffers",
     "OneHotTaskWrapper": "sb3_mtte.envs",
-    "SuccessResult": "sb3_mtte.common.evaluation",
-    "evaluate_success": "sb3_mtte.common.evaluation",
+    "SuccessResult": "sb3_mtte.evaluation",
+    "evaluate_success": "sb3_mtte.evaluation",
     "get_task_names": "sb3_mtte.envs",
     "make_mt_env": "sb3_mtte.envs",
 }

@@ -46,7 +46,7 @@ def no_evaluation(monkeypatch):
 # ========================================================================================================= Ctrl-C
 INTERRUPTED_EVALUATE = """
 import sys
-from sb3_mtte.common import evaluation
+from sb3_mtte import evaluation
 real = evaluation.evaluate_success
 
 def announced(*args, **kwargs):

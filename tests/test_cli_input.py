@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from conftest import ENV
 
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback
+from sb3_mtte.evaluation import MultiTaskEvalCallback
 from sb3_mtte.envs import make_mt_env
 from sb3_mtte.experiments.cli import main as zoo_main
 from sb3_mtte.experiments.playback import evaluate_model as evaluate

@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parent.parent
 GPU_SCRIPTS = ROOT / "scripts" / "gpu"
 package_names = load_script("scripts/gpu/device_venv.py").package_names
 
-CORE_MODULES = ["sb3_mtte.mtsac", "sb3_mtte.mtsacte", "sb3_mtte.envs", "sb3_mtte.common.evaluation", "tqdm", "rich"]
+CORE_MODULES = ["sb3_mtte.mtsac", "sb3_mtte.mtsacte", "sb3_mtte.envs", "sb3_mtte.evaluation", "tqdm", "rich"]
 """What the algorithms import, and what ``progress_bar=True`` imports (SB3's progress bar)."""
 SNIPPET = """
 import sb3_mtte

@@ -11,7 +11,7 @@ import pytest
 from gymnasium import ActionWrapper
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-from sb3_mtte.common.evaluation import evaluate_success
+from sb3_mtte.evaluation import evaluate_success
 from sb3_mtte.envs import (
     MT10_TASKS,
     EnvPoolVecEnv,

@@ -9,7 +9,7 @@ import pytest
 from stable_baselines3 import SAC
 from stable_baselines3.common.logger import KVWriter, Logger
 
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
+from sb3_mtte.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.envs import MT10_TASKS, MetaWorldExpertPolicy, ToyOraclePolicy, get_task_names, make_mt_env
 

@@ -24,7 +24,7 @@ from sb3_mtte import MTSAC, make_mt_env
 from sb3_mtte.common import gpu_defaults
 from sb3_mtte.common.captured_update import CapturedUpdate, prepare_for_capture
 from sb3_mtte.common.device_storage import resolve_storage
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback
+from sb3_mtte.evaluation import MultiTaskEvalCallback
 
 
 def graph_path_without_graph(model):

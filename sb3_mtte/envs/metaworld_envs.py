@@ -24,7 +24,7 @@ Measured on a 2-core CPU shared with other jobs (DummyVecEnv, random actions): b
 (about 5.5 s of it generating the goal variations, which are cached per process for a given task list and
 seed: a second build takes about 2 s); stepping runs at 1.5k-2.7k env steps/s (150-270 vector steps/s); one
 reset takes about 8 ms. Meta-World's scripted experts score 0.98 on MT10 under :func:`evaluate_success
-<sb3_mtte.common.evaluation.evaluate_success>` (50 episodes per task).
+<sb3_mtte.evaluation.evaluate_success>` (50 episodes per task).
 """
 
 from __future__ import annotations
@@ -39,7 +39,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
-from sb3_mtte.common.evaluation import ScriptedPolicy
+from sb3_mtte.common.scripted import ScriptedPolicy
 from sb3_mtte.common.utils import nearest_names
 from sb3_mtte.envs.wrappers import MultiTaskWrapper
 

@@ -34,7 +34,7 @@ import numpy as np
 from gymnasium import spaces
 from gymnasium.wrappers import TimeLimit
 
-from sb3_mtte.common.evaluation import ScriptedPolicy
+from sb3_mtte.common.scripted import ScriptedPolicy
 from sb3_mtte.envs.wrappers import MultiTaskWrapper
 
 STEP_SIZE = 0.1

@@ -34,7 +34,7 @@ from typing import Any
 from stable_baselines3.common.base_class import BaseAlgorithm
 
 from sb3_mtte.common.checkpoints import read_checkpoint_data
-from sb3_mtte.common.evaluation import SuccessResult, evaluate_success
+from sb3_mtte.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.cli import command_prog, device_error, output_file_error

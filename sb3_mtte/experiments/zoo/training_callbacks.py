@@ -13,7 +13,7 @@ from rl_zoo3.callbacks import TrialEvalCallback
 from stable_baselines3.common.callbacks import BaseCallback
 from stable_baselines3.common.vec_env import VecEnv
 
-from sb3_mtte.common.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
+from sb3_mtte.evaluation import MultiTaskEvalCallback, SuccessResult, evaluate_success
 from sb3_mtte.common.update_monitor import record_train_stats
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.zoo.run_checkpoints import (
