@@ -251,9 +251,8 @@ def test_loading_another_algorithm_or_task_count_fails_clearly(tmp_path):
 def test_rejects_env_without_one_sub_env_per_task():
     fns = [lambda: make_mt_env("toy-conflict").envs[0]] * 3  # 3 sub-envs whose one-hot has 4 entries
     env = DummyVecEnv(fns)
-    model = MTSAC("MlpPolicy", env, learning_starts=10, policy_kwargs=SMALL)
-    with pytest.raises(ValueError, match="one-hot"):
-        model.learn(10)
+    with pytest.raises(ValueError, match="one-hot"):  # refused at construction, before learn()
+        MTSAC("MlpPolicy", env, learning_starts=10, policy_kwargs=SMALL)
 
 
 def test_rejects_non_positive_clip_and_bad_critic_and_ent_coef_arch():

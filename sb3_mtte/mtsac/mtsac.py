@@ -7,6 +7,7 @@ SAC-Ind) and, for SAC-MT-with-clip, ``q_loss_clip=2000``.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -18,21 +19,14 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
+from sb3_mtte.common.captured_action import action_runner, resolve_action_path
 from sb3_mtte.common.captured_update import set_learning_rate
-from sb3_mtte.common.gradient_surgery import check_gradient_surgery
 from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.common.multitask_algorithm import MultiTaskOffPolicyAlgorithm
 from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
 from sb3_mtte.common.update_monitor import Stats, UpdateMonitor
-from sb3_mtte.common.utils import (
-    caller_stacklevel,
-    check_batch_size,
-    check_buffer_size,
-    check_learning_rate,
-    check_not_gymnasium_vector_env,
-    polyak_update,
-)
-from sb3_mtte.mtsac.checks import check_ent_coef_arch, check_q_loss_clip, check_update_path
+from sb3_mtte.common.utils import caller_stacklevel, check_not_gymnasium_vector_env, polyak_update
+from sb3_mtte.mtsac.checks import MTSAC_ARGUMENTS, ArgumentSpec, check_arguments
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
@@ -84,7 +78,11 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
     :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
     :param update_path: ``"auto"`` (a CUDA graph of the update on CUDA where the update allows it, else eager),
         ``"eager"`` or ``"cuda_graph"`` (:mod:`sb3_mtte.mtsac.update_path`). The same numbers on the CPU; on CUDA
-        the graph's agree within float tolerance (its learning rates are float32 tensors).
+        the graph's agree within float tolerance (its learning rates are float32 tensors). Acting takes a second
+        graph on CUDA unless ``"eager"`` (:mod:`sb3_mtte.common.captured_action`).
+    :param overlap_env_step: run each step's updates while the envs take the step, between sending the actions and
+        receiving the observations; each update then samples the transitions before its step
+        (:mod:`sb3_mtte.common.overlapped_rollout`). Off by default: it changes the algorithm.
     :param action_noise: optional exploration noise.
     :param replay_buffer_class: replay buffer class (a :class:`MultiTaskReplayBuffer` by default).
     :param replay_buffer_kwargs: its keyword arguments.
@@ -105,6 +103,8 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         "MOOREPolicy": MOOREPolicy,
         "PaCoPolicy": PaCoPolicy,
     }
+    argument_specs: ClassVar[Mapping[str, ArgumentSpec]] = MTSAC_ARGUMENTS
+    """Type and range of every argument but ``policy`` and ``env`` (:mod:`sb3_mtte.mtsac.checks`)."""
     policy: MTSACPolicy
 
     def __init__(
@@ -128,6 +128,7 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         gradient_surgery: str | None = None,
         cagrad_c: float = 0.5,
         update_path: str = "auto",
+        overlap_env_step: bool = False,
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -139,14 +140,8 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
+        check_arguments(type(self), locals())
         check_not_gymnasium_vector_env(env)
-        check_batch_size(batch_size)
-        check_buffer_size(buffer_size)
-        check_learning_rate(learning_rate)
-        check_q_loss_clip(q_loss_clip)
-        check_gradient_surgery(gradient_surgery, cagrad_c)
-        check_ent_coef_arch(ent_coef_arch)
-        check_update_path(update_path)
         super().__init__(
             policy,
             env,  # type: ignore[arg-type]
@@ -175,11 +170,13 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         self._setup_tasks()
         self.critic_arch, self.ent_coef_arch, self.q_loss_clip = critic_arch, ent_coef_arch, q_loss_clip
         self.gradient_surgery, self.cagrad_c, self.update_path = gradient_surgery, cagrad_c, update_path
+        self.overlap_env_step = overlap_env_step
         self.ent_coef, self.target_entropy = ent_coef, target_entropy
         self.target_update_interval = target_update_interval
         self.temperature: MultiTaskTemperature | None = None
         if _init_setup_model:
             self._setup_model()
+            self._check_first_observations()
 
     # ----------------------------------------------------------------------------------------------- set-up
     def _setup_model(self) -> None:
@@ -260,6 +257,8 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         record = self._record_train_stats
         self.update_monitor = UpdateMonitor(self.device, deferred, record, MEAN_STATS, self._n_updates)
         self._update_runner = update_runner(path, self._update, self._optimizers, self.device, capture)
+        acting = resolve_action_path(self.update_path, self.device) if capture else "cuda_graph"
+        self.policy.action_runner = action_runner(acting, self.policy.act, self.device, capture)
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         optimizers = [self.actor.optimizer, self.critic.optimizer]

@@ -19,6 +19,7 @@ from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 
+from sb3_mtte.common.captured_action import CapturedAction
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP, mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
 
@@ -151,6 +152,8 @@ class MTSACPolicy(MultiTaskPolicy):
     """
 
     actor_class: type[MultiTaskActor] = SharedActor
+    action_runner: CapturedAction | None = None
+    """What ``predict`` runs: None, :meth:`act` eagerly, or its CUDA graph (set by the algorithm on the fast path)."""
 
     def __init__(
         self,
@@ -181,6 +184,12 @@ class MTSACPolicy(MultiTaskPolicy):
         }
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        if self.action_runner is None:
+            return self.act(observation, deterministic)
+        return self.action_runner(observation, deterministic)
+
+    def act(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Actions for observations in any order: the eager acting function, which the acting graph replays."""
         return self.actor.act(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:

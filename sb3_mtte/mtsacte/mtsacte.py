@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from typing import Any, ClassVar, TypeVar
 
 import numpy as np
@@ -16,17 +17,8 @@ from sb3_mtte.common.update_hooks import NegativeTransferWeights, UpdateHook
 from sb3_mtte.common.utils import check_finite, task_log_key
 from sb3_mtte.mtsac.mtsac import MTSAC
 from sb3_mtte.mtsacte.callbacks import NegativeTransferLogCallback
-from sb3_mtte.mtsacte.checks import (
-    check_iteration,
-    check_n_select,
-    check_nt_chunk_size,
-    check_nt_estimator,
-    check_nt_measure,
-    check_per_task_critics,
-    check_rates,
-    check_policy_kwargs,
-    check_top_k,
-)
+from sb3_mtte.mtsac.checks import ArgumentSpec, check_arguments
+from sb3_mtte.mtsacte.checks import MTSACTE_ARGUMENTS, check_n_select
 from sb3_mtte.mtsacte.objectives import TaskSelection, select_tasks
 from sb3_mtte.mtsacte.policies import MTSACTEPolicy
 from sb3_mtte.mtsacte.probe import task_probe_accuracy
@@ -94,6 +86,7 @@ class MTSACTE(MTSAC):
 
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {"MlpPolicy": MTSACTEPolicy}
     min_tasks: ClassVar[int] = 2  # Eq. 7 needs 1 <= M < N
+    argument_specs: ClassVar[Mapping[str, ArgumentSpec]] = MTSACTE_ARGUMENTS
     policy: MTSACTEPolicy
 
     def __init__(
@@ -126,6 +119,7 @@ class MTSACTE(MTSAC):
         nt_measure: str = "per_batch",
         critic_arch: str = "per_task",
         update_path: str = "auto",
+        overlap_env_step: bool = False,
         action_noise: ActionNoise | None = None,
         replay_buffer_class: type[ReplayBuffer] | None = None,
         replay_buffer_kwargs: dict[str, Any] | None = None,
@@ -137,14 +131,7 @@ class MTSACTE(MTSAC):
         device: th.device | str = "auto",
         _init_setup_model: bool = True,
     ) -> None:
-        check_policy_kwargs(policy_kwargs)
-        check_top_k(top_k)
-        check_nt_estimator(nt_estimator)
-        check_rates(nt_step_size, c_vae, rep_learning_rate)
-        check_nt_chunk_size(nt_chunk_size)
-        check_nt_measure(nt_measure)
-        check_iteration(iteration_length, rep_gradient_steps)
-        check_per_task_critics(critic_arch)
+        check_arguments(type(self), locals())
         replay_buffer_kwargs = {**(replay_buffer_kwargs or {}), "top_k": top_k if use_topk else 0}
         super().__init__(
             policy,
@@ -163,6 +150,7 @@ class MTSACTE(MTSAC):
             critic_arch="per_task",
             q_loss_clip=q_loss_clip,
             update_path=update_path,
+            overlap_env_step=overlap_env_step,
             action_noise=action_noise,
             replay_buffer_class=replay_buffer_class,
             replay_buffer_kwargs=replay_buffer_kwargs,
@@ -189,6 +177,7 @@ class MTSACTE(MTSAC):
         writes them."""
         if _init_setup_model:
             self._setup_model()
+            self._check_first_observations()
 
     def _setup_model(self) -> None:
         super()._setup_model()

@@ -10,6 +10,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 
+from sb3_mtte.common.captured_action import CapturedAction
 from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
@@ -75,6 +76,9 @@ class MTSACTEPolicy(MultiTaskPolicy):
         :class:`~sb3_mtte.common.policies.MultiTaskPolicy`.
     """
 
+    action_runner: CapturedAction | None = None
+    """What ``predict`` runs: None, :meth:`act` eagerly, or its CUDA graph (set by the algorithm on the fast path)."""
+
     def __init__(
         self,
         observation_space: spaces.Box,
@@ -133,6 +137,12 @@ class MTSACTEPolicy(MultiTaskPolicy):
         return self.actor(self.actor_input(obs[..., : self.state_dim], z), noise)
 
     def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        if self.action_runner is None:
+            return self.act(observation, deterministic)
+        return self.action_runner(observation, deterministic)
+
+    def act(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """z ~ E_phi, then pi_theta's actions: the eager acting function, which the acting graph replays."""
         z = self.embed(observation, deterministic and self.deterministic_z == "mean")
         return self.actor.act(self.actor_input(observation[..., : self.state_dim], z), deterministic)
 
