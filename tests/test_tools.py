@@ -31,7 +31,8 @@ from sb3_mtte.experiments.run_info import (
 from sb3_mtte.experiments.variants import label_of as algo_label
 from sb3_mtte.experiments.variants import variant_labels
 from sb3_mtte.experiments.zoo import sweep
-from sb3_mtte.experiments.zoo.sweep import env_id_for, plan_trials, trial_command
+from sb3_mtte.experiments.zoo.sweep import env_id_for, plan_trials
+from sb3_mtte.experiments.zoo.sweep_run import trial_command
 
 TASKS = ["agree-0", "agree-1", "agree-2", "conflict"]
 
@@ -351,7 +352,7 @@ def test_sweep_plan_and_budget(tmp_path):
     ("flag", "value", "message"),
     [
         ("--algos", "mtsac_nope", "unknown --algos mtsac_nope: choose from .*mtsacte"),
-        ("--envs", "MT11", "unknown --envs MT11: MT10"),
+        ("--envs", "MT11", "unknown --envs MT11: did you mean MT10\\? The env ids: MT10"),
         (
             "--envs",
             "MT50",

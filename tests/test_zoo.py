@@ -177,8 +177,8 @@ def test_resume_of_a_folder_that_is_not_a_run_names_the_fix(tmp_path):
 def test_a_benchmark_without_hyperparameters_or_a_resume_without_a_run_names_the_fix(tmp_path):
     from sb3_mtte.experiments.cli import main
 
-    with pytest.raises(SystemExit, match=r"mtsac_mt has no hyperparameters for toy-conflict-3 \(its entries: .*MT10"):
-        main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict-3", "-f", str(tmp_path)])
+    with pytest.raises(SystemExit, match=r"mtsac_mt has no hyperparameters for MT50 \(its entries: .*MT10"):
+        main(["train", "--algo", "mtsac_mt", "--env", "MT50", "-f", str(tmp_path)])
     with pytest.raises(SystemExit, match=r"No run of mtsac_mt on toy-conflict in .* to resume: give -f of your runs"):
         main(["train", "--algo", "mtsac_mt", "--env", "toy-conflict", "-f", str(tmp_path), "--resume"])
 
@@ -301,7 +301,7 @@ def test_a_resumed_run_keeps_its_progress_bar_setting(tmp_path, monkeypatch):
 
 def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
     """Every evaluation at 0 success: best_model.zip is the model of the last evaluation, not of the first."""
-    from sb3_mtte.common import evaluation
+    from sb3_mtte import evaluation
     from sb3_mtte.envs import make_mt_env
     from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback
 
@@ -320,7 +320,7 @@ def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_mode
     """SB3's order: a vector step's callbacks run before that step's update, so the evaluation at the final step
     (and best_model.zip saved by it) sees the model before its last gradient step (docs/guide/train.md, "The run
     folder")."""
-    from sb3_mtte.common import evaluation
+    from sb3_mtte import evaluation
     from sb3_mtte.envs import make_mt_env
     from sb3_mtte.experiments.zoo.training_callbacks import ZooEvalCallback
 
@@ -341,7 +341,7 @@ def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_mode
 def test_optuna_search_runs_through_the_zoo_and_scores_success(tmp_path, monkeypatch):
     """A trial's value is the mean success over tasks of Meta-World's protocol (here a stand-in evaluation that
     scores 0.625 with the run's episodes per task), not rl-zoo's mean return."""
-    from sb3_mtte.common.evaluation import SuccessResult
+    from sb3_mtte.evaluation import SuccessResult
     from sb3_mtte.experiments.zoo import training_callbacks as callbacks
 
     calls = []

@@ -28,7 +28,7 @@ from scipy import stats
 from sb3_mtte.experiments.results.bellman_table import evaluation_steps
 from sb3_mtte.experiments.results.compare import DIFFERENCE_REPS, MeanDifference, mean_difference, runaway
 from sb3_mtte.experiments.results.records import load_runs
-from sb3_mtte.experiments.results.runs import Run, group_runs, label_order, success_curve
+from sb3_mtte.experiments.results.runs import GPU_SUFFIX, Run, group_runs, label_order, success_curve
 from sb3_mtte.experiments.results.statistics import final_task_scores, has_final_evaluation
 
 RUNAWAY_LOSS = 100.0
@@ -159,7 +159,9 @@ def bellman_section(label: str, cpu: list[Run], gpu: list[Run]) -> tuple[list[st
 
 def comparison_report(cpu_folder: str | Path, gpu_folder: str | Path, benchmark: str) -> str:
     """The markdown report of the comparison fixed before the GPU runs."""
-    cpu, gpu = finished_runs(cpu_folder, benchmark), finished_runs(gpu_folder, benchmark)
+    cpu = finished_runs(cpu_folder, benchmark)
+    # records that name CUDA group as <benchmark>-gpu; older ones name no device
+    gpu = finished_runs(gpu_folder, benchmark + GPU_SUFFIX) or finished_runs(gpu_folder, benchmark)
     labels = [label for label in label_order(list(gpu)) if label in cpu]
     if not labels:
         raise SystemExit(

@@ -6,7 +6,10 @@ repository. Its fields (format :data:`RECORD_VERSION`):
 - ``record_version``; ``algo`` (zoo key), ``label``, ``env_id`` (e.g. ``MT10-cpu``), ``benchmark`` (e.g. ``MT10``),
   ``seed``, ``task_names``, ``n_tasks``, ``episode_length``, ``started`` (when the run started: with env id, label and
   seed it names the run), ``reward_function_version`` (Meta-World's reward functions, null for a toy benchmark; a
-  record without the field was made with ``"v2"``);
+  record without the field was made with ``"v2"``), ``env_protocol`` (how the training envs differ from Meta-World's
+  benchmark, :func:`sb3_mtte.envs.env_protocol`; a record without it was trained on Meta-World's own envs);
+- ``device``: the machine's CPU count, torch threads and CUDA device, its ``host`` and ``trained_on`` (``"cuda"``,
+  ``"cpu"``); a record without it was trained on a CPU;
 - ``budget``: ``n_timesteps`` (planned env steps, all tasks), ``timesteps`` (reached) and ``finished``;
 - ``hyperparams`` (every hyperparameter as loaded), ``versions`` (packages), ``git`` (commit, branch, dirty flag),
   ``resumes`` (how many times the run was resumed);
@@ -27,7 +30,8 @@ A run that did not finish (``finished: false``) is skipped, named in one line, u
 given; its record then says so, and the tables mark it.
 
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
-Meta-World's v1 rewards; the default ``--out`` is ``docs/records``)::
+Meta-World's v1 rewards, ``<env id>-envpool/`` for runs trained on EnvPool, ``<env id>-gpu/`` for runs trained on
+CUDA; the default ``--out`` is ``docs/records``)::
 
     sb3-mtte record RUNS_DIR [--out docs/records] [--include-unfinished]
 """
@@ -47,7 +51,14 @@ from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments.cli import command_prog, output_folder_error
 from sb3_mtte.experiments.results.figures import safe_name
 from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
-from sb3_mtte.experiments.results.runs import Run, Series, discover_runs, results_benchmark, task_scalar
+from sb3_mtte.experiments.results.runs import (
+    Run,
+    Series,
+    device_type_of,
+    discover_runs,
+    results_benchmark,
+    task_scalar,
+)
 from sb3_mtte.experiments.results.statistics import leave_out_unfinished
 from sb3_mtte.experiments.run_info import read_json
 from sb3_mtte.mtsac.task_logs import CLIP_FRACTION_KEY, CRITIC_LOSS_KEY
@@ -125,6 +136,8 @@ def run_record(run: Run) -> dict[str, Any]:
         "n_tasks": run.n_tasks,
         "episode_length": info.get("episode_length"),
         "reward_function_version": run.reward_function_version,
+        "env_protocol": run.env_protocol,
+        **_device_field(info),
         "started": info.get("started"),
         "budget": {
             "n_timesteps": info.get("n_timesteps", info.get("hyperparams", {}).get("n_timesteps")),
@@ -150,10 +163,21 @@ def run_record(run: Run) -> dict[str, Any]:
     }
 
 
+def _device_field(info: dict[str, Any]) -> dict[str, Any]:
+    """``{"device": ...}``: run_info's ``device`` with its ``host`` and what the run trained on
+    (:func:`~sb3_mtte.experiments.results.runs.device_type_of`); empty when run_info names no device."""
+    if info.get("device") is None:
+        return {}
+    return {"device": {**info["device"], "host": info.get("host"), "trained_on": device_type_of(info)}}
+
+
 def record_path(record: dict[str, Any], out: Path) -> Path:
     """``out/<benchmark>/<algo>_seed<k>.json``, the benchmark of
-    :func:`~sb3_mtte.experiments.results.runs.results_benchmark` (the env id on Meta-World's default rewards)."""
-    bench = results_benchmark(str(record["env_id"]), record.get("reward_function_version"))
+    :func:`~sb3_mtte.experiments.results.runs.results_benchmark` (the env id for Meta-World's default rewards and
+    envs on a CPU)."""
+    bench = results_benchmark(
+        str(record["env_id"]), record.get("reward_function_version"), record.get("env_protocol"), device_type_of(record)
+    )
     return out / safe_name(bench) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
 
@@ -227,6 +251,8 @@ def run_from_record(record: dict[str, Any], path: Path) -> Run:
         "episode_length",
         "started",
         "reward_function_version",
+        "env_protocol",
+        "device",
     )
     info = {key: record.get(key) for key in keys}
     info["hyperparams"] = record.get("hyperparams") or {}

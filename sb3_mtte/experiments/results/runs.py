@@ -16,7 +16,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -111,6 +111,17 @@ class Run:
         return version
 
     @property
+    def env_protocol(self) -> dict[str, Any] | None:
+        """How the training envs differ from Meta-World's benchmark (:func:`sb3_mtte.envs.env_protocol`); None for
+        a toy, and for runs and records that predate the field (Meta-World's own envs)."""
+        return self.info.get("env_protocol")
+
+    @property
+    def device_type(self) -> str | None:
+        """What the run trained on (``"cuda"``, ``"cpu"``; :func:`device_type_of`)."""
+        return device_type_of(self.info)
+
+    @property
     def task_names(self) -> list[str]:
         names = self.info.get("task_names")
         if not names and self.evaluations is not None:
@@ -151,20 +162,52 @@ def discover_runs(runs_dir: str | Path) -> list[Run]:
     return [load_run(p) for p in paths]
 
 
-def results_benchmark(env_id: str, reward_function_version: str | None) -> str:
-    """The benchmark a run's results are drawn under: its env id, followed by its Meta-World reward functions when
-    they are not the default (``MT10-cpu-reward-v1``), so that runs of different rewards never share a table."""
-    if reward_function_version in (None, REWARD_FUNCTION_VERSIONS[0]):
-        return env_id
-    return f"{env_id}-reward-{reward_function_version}"
+def device_type_of(info: Mapping[str, Any]) -> str | None:
+    """What a run trained on (``"cuda"``, ``"cpu"``), from its ``run_info.json`` or record: the device's
+    ``trained_on`` (a record's), else the ``--device`` it was given, ``"auto"`` read as CUDA where CUDA was found;
+    None when neither says (records that predate the field, all trained on CPUs)."""
+    device = info.get("device") or {}
+    asked = device.get("trained_on") or (info.get("zoo_args") or {}).get("device")
+    if asked is None:
+        return None
+    asked = str(asked).lower()
+    if asked == "auto":
+        return "cuda" if device.get("cuda") else "cpu"
+    return "cuda" if asked.startswith("cuda") else asked
+
+
+GPU_SUFFIX = "-gpu"
+"""What follows the env id of runs trained on CUDA (``MT10-100k-gpu``), drawn apart from the CPU runs."""
+
+
+def results_benchmark(
+    env_id: str,
+    reward_function_version: str | None,
+    env_protocol: Mapping[str, Any] | None = None,
+    device_type: str | None = None,
+) -> str:
+    """The benchmark a run's results are drawn under: its env id, followed by what sets its runs apart, so that
+    they never share a table with the others: its Meta-World reward functions when not the default
+    (``MT10-cpu-reward-v1``), its backend when it is not the benchmark's protocol (``MT10-100k-envpool``), and
+    :data:`GPU_SUFFIX` when it trained on CUDA."""
+    bench = env_id
+    if reward_function_version not in (None, REWARD_FUNCTION_VERSIONS[0]):
+        bench += f"-reward-{reward_function_version}"
+    if env_protocol and env_protocol.get("benchmark_protocol") is False:
+        bench += f"-{env_protocol.get('backend')}"
+    return bench + GPU_SUFFIX if device_type == "cuda" else bench
+
+
+def run_results_benchmark(run: Run) -> str:
+    """:func:`results_benchmark` of a run."""
+    return results_benchmark(run.benchmark, run.reward_function_version, run.env_protocol, run.device_type)
 
 
 def group_runs(runs: Sequence[Run]) -> dict[str, dict[str, list[Run]]]:
     """benchmark (:func:`results_benchmark`) -> algorithm label -> runs (its seeds)."""
     groups: dict[str, dict[str, list[Run]]] = {}
     for run in runs:
-        bench = results_benchmark(run.benchmark, run.reward_function_version)
-        groups.setdefault(bench, {}).setdefault(run.label, []).append(run)
+        groups.setdefault(run_results_benchmark(run), {}).setdefault(run.label, []).append(run)
     return groups
 
 

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -55,7 +55,8 @@ OURS_ALGO = "mtsacte"
 class BenchmarkStatistics:
     """Final success of one benchmark's algorithms: ``scores`` label -> ``(runs, tasks)``, the mean and IQM of each
     with its interval, P(Ours > label) for every other label (empty without Ours), and the Meta-World reward
-    functions of the runs (empty off Meta-World), and ``scored`` label -> the runs behind ``scores``."""
+    functions of the runs (empty off Meta-World), ``scored`` label -> the runs behind ``scores``, and the labels of
+    the training envs that are not Meta-World's benchmark protocol (``protocols``; empty on Meta-World's own)."""
 
     scores: dict[str, np.ndarray]
     aggregates: dict[str, dict[str, Estimate]]
@@ -63,6 +64,7 @@ class BenchmarkStatistics:
     improvement: dict[str, Estimate]
     reward_function_versions: tuple[str, ...] = ()
     scored: dict[str, list[Run]] = field(default_factory=dict)
+    protocols: tuple[str, ...] = ()
 
 
 def ours_label(groups: dict[str, list[Run]]) -> str | None:
@@ -85,7 +87,14 @@ def benchmark_statistics(
     improvement = improvement_probabilities(scores[ours], baselines, reps, seed) if ours and baselines else {}
     versions = {run.reward_function_version for label in scores for run in groups[label]} - {None}
     aggregates = aggregate_estimates(scores, reps, seed) if scores else {}
-    return BenchmarkStatistics(scores, aggregates, ours, improvement, tuple(sorted(versions)), scored)
+    protocols = tuple(sorted(_protocol_labels(run for runs in scored.values() for run in runs)))
+    return BenchmarkStatistics(scores, aggregates, ours, improvement, tuple(sorted(versions)), scored, protocols)
+
+
+def _protocol_labels(runs: Iterable[Run]) -> set[str]:
+    """The labels of the training envs of ``runs`` that are not Meta-World's benchmark protocol."""
+    protocols = (run.env_protocol for run in runs)
+    return {str(p.get("label")) for p in protocols if p and p.get("benchmark_protocol") is False}
 
 
 def _cell(estimate: Estimate | None, scale: float = 100.0, digits: int = 1) -> str:
@@ -119,6 +128,11 @@ def _table_note(bench: str, stats: BenchmarkStatistics, published: dict[str, flo
         note += f" Unfinished: {UNFINISHED_NOTE}"
     if stats.reward_function_versions:
         note += f" Meta-World reward function {' and '.join(stats.reward_function_versions)}."
+    if stats.protocols:
+        note += (
+            f" Trained on {' and '.join(stats.protocols)}, not Meta-World's benchmark protocol; evaluated on "
+            "Meta-World's own envs."
+        )
     if published:
         by_source: dict[str, list[str]] = {}
         for label, source in paper_sources().items():

@@ -17,6 +17,7 @@ import yaml
 
 from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.envs.metaworld_envs import is_task_list
+from sb3_mtte.envs.toy import parse_toy_name
 from sb3_mtte.experiments.env_ids import benchmark_task_names, split_env_id
 from sb3_mtte.experiments.variants import FAMILIES, VARIANTS, algo_classes, family_of
 
@@ -59,7 +60,7 @@ def family_config_path(algo: str) -> Path | None:
 def zoo_hyperparameters(algo: str, env_ids: Iterable[str] = ()) -> dict[str, dict[str, Any]] | None:
     """Every env entry of a zoo key's hyperparameters (rl-zoo's file layout), or None for a key of no family.
 
-    :param env_ids: env ids to add an entry for when they are task lists (:func:`task_list_entry`).
+    :param env_ids: env ids to add an entry for when they are task lists or toys (:func:`task_list_entry`).
     :raises FileNotFoundError: when the family's file is missing.
     """
     if family_of(algo) is None:
@@ -79,25 +80,42 @@ def zoo_hyperparameters(algo: str, env_ids: Iterable[str] = ()) -> dict[str, dic
 
 TASK_LIST_REFERENCE = "MT10"
 """The benchmark whose settings per task a task list (``--env reach-v3_push-v3``) trains with."""
+TOY_REFERENCE = "toy-conflict"
+"""The toy whose settings per task every other toy (``toy-agree``, ``toy-conflict-6``) trains with."""
 PER_TASK_KEYS = ("n_timesteps", "buffer_size", "learning_starts", "eval_freq", "save_freq")
 """Hyperparameters that grow with the task count N (env steps and transitions over all tasks)."""
 
 
-def task_list_entry(entries: dict[str, dict[str, Any]], env_id: str) -> dict[str, Any] | None:
-    """The entry of a task-list env id (``reach-v3_push-v3-smoke``): :data:`TASK_LIST_REFERENCE`'s entry at the same
-    budget suffix with each of :data:`PER_TASK_KEYS` scaled to the list's N tasks and ``n_select`` (M) N // 2;
-    None for any other env id or without the reference entry."""
-    benchmark, suffix = split_env_id(env_id)
-    reference = TASK_LIST_REFERENCE if suffix is None else f"{TASK_LIST_REFERENCE}-{suffix}"
-    if not is_task_list(benchmark) or reference not in entries:
+def reference_benchmark(benchmark: str) -> str | None:
+    """The benchmark whose entry ``benchmark`` scales: :data:`TASK_LIST_REFERENCE` for a task list,
+    :data:`TOY_REFERENCE` for a toy, None for any other (or an invalid one)."""
+    try:
+        benchmark_task_names(benchmark)
+    except ValueError:
         return None
-    n_tasks, n_reference = len(benchmark_task_names(benchmark)), len(benchmark_task_names(TASK_LIST_REFERENCE))
+    if is_task_list(benchmark):
+        return TASK_LIST_REFERENCE
+    return TOY_REFERENCE if parse_toy_name(benchmark) is not None else None
+
+
+def task_list_entry(entries: dict[str, dict[str, Any]], env_id: str) -> dict[str, Any] | None:
+    """The entry of a task list (``reach-v3_push-v3-smoke``) or a toy (``toy-agree-1``): its
+    :func:`reference_benchmark`'s entry at the same budget suffix with each of :data:`PER_TASK_KEYS` scaled to the
+    N tasks and ``n_select`` (M) N // 2, at least 1; None for any other env id or without the reference entry."""
+    benchmark, suffix = split_env_id(env_id)
+    reference = reference_benchmark(benchmark)
+    if reference is None:
+        return None
+    reference = reference if suffix is None else f"{reference}-{suffix}"
+    if reference not in entries:
+        return None
+    n_tasks, n_reference = len(benchmark_task_names(benchmark)), len(benchmark_task_names(split_env_id(reference)[0]))
     entry = dict(entries[reference])
     for key in PER_TASK_KEYS:
         if key in entry:
             entry[key] = type(entry[key])(entry[key] * n_tasks / n_reference)
     if "n_select" in entry:
-        entry["n_select"] = n_tasks // 2
+        entry["n_select"] = max(n_tasks // 2, 1)
     return entry
 
 
@@ -110,7 +128,7 @@ def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-co
         return None
     return (
         f"{algo} has no hyperparameters for {' '.join(missing)} (its entries: {' '.join(entries or {})}): pass "
-        f"{conf_flag} <file>.yml with an entry for each"
+        f"{conf_flag} <file>.yml that has an entry for {' and '.join(missing)}."
     )
 
 
@@ -161,6 +179,7 @@ __all__ = [
     "find_config_dir",
     "hyperparameter_keys",
     "missing_entries_message",
+    "reference_benchmark",
     "task_list_entry",
     "unknown_key_message",
     "zoo_hyperparameters",

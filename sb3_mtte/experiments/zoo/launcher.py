@@ -21,7 +21,7 @@ from rl_zoo3 import hyperparams_opt
 from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.cli import command_prog, device_error, output_folder_error
-from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, register_env_id
+from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, env_id_n_tasks, register_env_id
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
 from sb3_mtte.experiments.zoo import adapter
 from sb3_mtte.experiments.zoo.configs import missing_entries_message, zoo_hyperparameters
@@ -83,6 +83,17 @@ def check_algo(algo: str | None) -> str:
             f"--algo {algo} is not an algorithm of sb3_mtte: {hint + ' ' if hint else ''}one of {' '.join(keys)}."
         )
     return algo
+
+
+def check_task_count(algo: str, env_id: str) -> None:
+    """Refuse a benchmark of fewer tasks than ``algo`` compares (MTSACTE's Eq. 7 needs 1 <= M < N), in one line."""
+    min_tasks = getattr(algo_classes()[algo], "min_tasks", 1)
+    n_tasks = env_id_n_tasks(env_id)
+    if n_tasks < min_tasks:
+        raise SystemExit(
+            f"{algo} needs at least {min_tasks} tasks, and {env_id} has {n_tasks}: give a benchmark of {min_tasks} "
+            "tasks or more, or an MTSAC key (mtsac_mt)."
+        )
 
 
 def check_budget(zoo_argv: Sequence[str]) -> None:
@@ -184,6 +195,7 @@ def train(argv: Sequence[str]) -> None:
     if not register_env_id(env_id):
         raise SystemExit(f"{env_id!r} is not a benchmark of sb3_mtte: {benchmark_help(env_id)}")
     algo = check_algo(flag_value(zoo_argv, "--algo"))
+    check_task_count(algo, env_id)
     check_budget(zoo_argv)
     check_conf_file(zoo_argv)
     problem = device_error("--device", flag_value(zoo_argv, "--device"))
@@ -223,6 +235,7 @@ __all__ = [
     "check_budget",
     "check_conf_file",
     "check_output_folders",
+    "check_task_count",
     "flag_value",
     "has_flag",
     "latest_run_dir",

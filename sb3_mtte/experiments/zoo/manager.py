@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import copy
 import os
 from collections import OrderedDict, deque
 from dataclasses import dataclass
@@ -16,24 +17,19 @@ from pathlib import Path
 from typing import Any
 
 import yaml
+from rl_zoo3.utils import ALGOS
 from stable_baselines3.common.base_class import BaseAlgorithm
 from stable_baselines3.common.callbacks import ProgressBarCallback
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.utils import get_task_names
-from sb3_mtte.envs import (
-    backend_of,
-    check_env_kwargs,
-    env_protocol,
-    envpool_vec_env_cls,
-    official_env_kwargs,
-    reward_function_version,
-)
-from sb3_mtte.envs import envpool_envs
+from sb3_mtte.mtsac.checks import check_arguments
+from sb3_mtte.envs import env_protocol, official_env_kwargs, reward_function_version
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.env_ids import MultiTaskVecEnvFactory, benchmark_task_names, env_id_n_tasks, split_env_id
 from sb3_mtte.experiments.zoo.adapter import ZooExperimentManager
 from sb3_mtte.experiments.zoo.configs import LAUNCHER_YAML_KEYS, family_config_path, unknown_key_message
+from sb3_mtte.experiments.zoo.env_backend import check_env_kwargs_flags, prepare_backend
 from sb3_mtte.experiments.zoo.resume import RunFolderSettings
 from sb3_mtte.experiments.zoo.run_checkpoints import (
     Checkpoint,
@@ -110,32 +106,8 @@ class MultiTaskExperimentManager(RunFolderSettings, ZooExperimentManager):
         self._eval_env: VecEnv | None = None
         self.stop_request = StopRequest()
         self.stopped: Stop | None = None
-        self._check_env_kwargs()
-        self._prepare_backend()
-
-    def _check_env_kwargs(self) -> None:
-        """Refuse an env keyword the benchmark lacks (the nearest valid one named), or a ``reward_function_version``
-        Meta-World lacks (or one given to a toy), before any folder is made."""
-        for flag, env_kwargs in (("--env-kwargs", self.env_kwargs), ("--eval-env-kwargs", self.eval_env_kwargs)):
-            try:
-                check_env_kwargs(self.benchmark, env_kwargs)
-            except (TypeError, ValueError) as error:
-                raise SystemExit(f"{flag}: {error}") from None
-        if backend_of(self.eval_env_kwargs_given) != "metaworld":
-            raise SystemExit(
-                "--eval-env-kwargs: the evaluation runs on Meta-World's own envs: leave backend out of it."
-            )
-
-    def _prepare_backend(self) -> None:
-        """``backend:'envpool'``: refuse a missing EnvPool before any folder is made, and step the pools in
-        parallel (each pool's step is sent before any is received)."""
-        if backend_of(self.env_kwargs) != "envpool":
-            return
-        try:
-            envpool_envs.require_envpool()
-        except ImportError as error:
-            raise SystemExit(f"--env-kwargs: {error}") from None
-        self.vec_env_class.vec_env_cls = envpool_vec_env_cls(self.vec_env_class.vec_env_cls)
+        check_env_kwargs_flags(self.benchmark, self.env_kwargs, self.eval_env_kwargs, self.eval_env_kwargs_given)
+        prepare_backend(self.env_kwargs, self.vec_env_class)
 
     # ---- hyperparameters
     def read_hyperparameters(self) -> tuple[dict[str, Any], dict[str, Any]]:
@@ -164,10 +136,21 @@ class MultiTaskExperimentManager(RunFolderSettings, ZooExperimentManager):
                 self.save_freq = int(value)
         if self.eval_env_kwargs_given is None:  # evaluated on Meta-World's own envs, also when trained on EnvPool
             self.eval_env_kwargs = official_env_kwargs(self.env_kwargs)
+        self._check_arguments(hyperparams)
         saved = OrderedDict((key, hyperparams[key]) for key in sorted(hyperparams))
         saved.update({key: value for key, value in self._zoo_yaml_values().items()})
         saved = OrderedDict((key, saved[key]) for key in sorted(saved))
         return hyperparams, saved
+
+    def _check_arguments(self, hyperparams: dict[str, Any]) -> None:
+        """The constructor's type and range checks (one table per class) on the hyperparameters as rl-zoo will pass
+        them, before any folder exists."""
+        verbose, self.verbose = self.verbose, 0  # the dry pass prints nothing
+        try:
+            processed = self.preprocess_hyperparams(copy.deepcopy(dict(hyperparams)))[0]
+        finally:
+            self.verbose = verbose
+        check_arguments(ALGOS[self.algo], {**processed, "seed": self.seed}, n_tasks=self.n_tasks)
 
     def _source_of(self, key: str) -> str:
         """Where a hyperparameter was given: ``-params``, else the file read."""

@@ -24,6 +24,7 @@ ENJOY_DESCRIPTION = (
     "and every finished episode is printed."
 )
 PROGRESS_HELP = "display a progress bar with tqdm and rich (on by default: --no-progress hides it)"
+TRAIN_STEPS_HELP = "env steps over all tasks (enjoy's -n counts vector steps, one step of every task)"
 
 
 def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
@@ -86,6 +87,7 @@ class ZooParser(argparse.ArgumentParser):
     ``launcher_options``, the launcher's options in a group of the help."""
 
     def __init__(self, *args: Any, launcher_options: bool = False, **kwargs: Any) -> None:
+        self.steps_help = TRAIN_STEPS_HELP if launcher_options else None
         super().__init__(*args, **kwargs)
         if launcher_options:
             add_launcher_options(self.add_argument_group("sb3_mtte options"))
@@ -95,6 +97,8 @@ class ZooParser(argparse.ArgumentParser):
             kwargs["help"] = f"env id: {benchmark_help()}"
         if "--algo" in names:
             kwargs.update(choices=list(algo_classes()), help="zoo key of the algorithm (MTSAC's or MTSACTE's variants)")
+        if "-n" in names and self.steps_help:
+            kwargs["help"] = self.steps_help
         if "--progress" in names:
             kwargs["help"] = PROGRESS_HELP
         if kwargs.get("action") is StoreDict:
@@ -112,6 +116,7 @@ def zoo_parser(description: str, launcher_options: bool = False, prog: str | Non
 __all__ = [
     "ENJOY_DESCRIPTION",
     "TRAIN_DESCRIPTION",
+    "TRAIN_STEPS_HELP",
     "CheckedStoreDict",
     "ZooParser",
     "add_launcher_options",

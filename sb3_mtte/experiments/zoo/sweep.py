@@ -39,7 +39,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
@@ -49,6 +48,7 @@ from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, regist
 from sb3_mtte.experiments.variants import algo_classes
 from sb3_mtte.experiments.zoo import launcher
 from sb3_mtte.experiments.zoo.configs import missing_entries_message
+from sb3_mtte.experiments.zoo.sweep_run import last_success
 from sb3_mtte.experiments.zoo.sweep_trial import run_trial
 from sb3_mtte.process import SPIN_VARIABLES
 
@@ -116,19 +116,6 @@ def plan_trials(
     return trials
 
 
-def trial_command(trial: dict[str, Any], out: Path, extra: Sequence[str], cpus: float) -> list[str]:
-    """``sb3-mtte`` arguments of a trial: a new run, or the resumption of its run folder."""
-    run_dir = Path(trial["run_dir"])
-    argv = ["train", "--algo", trial["algo"], "--env", trial["env_id"], "-f", str(out), "--no-progress"]
-    if run_info.read_run_info(run_dir) is not None:
-        argv += ["--resume", str(run_dir)]
-    else:
-        argv += ["--seed", str(trial["seed"]), "--exp-id", str(trial["exp_id"])]
-    if "--num-threads" not in extra:
-        argv += ["--num-threads", str(max(1, int(cpus)))]
-    return argv + list(extra)
-
-
 def trial_resources(cpus_per_trial: float, gpus_per_trial: float | None, cuda_count: int) -> dict[str, float]:
     """What Ray reserves for each trial: ``cpus_per_trial`` CPUs, and a share of a GPU where there is one.
 
@@ -149,34 +136,6 @@ def cuda_device_count() -> int:
     import torch as th
 
     return th.cuda.device_count() if th.cuda.is_available() else 0
-
-
-def run_one(config: dict[str, Any]) -> dict[str, Any]:
-    """Run (or resume, or skip when finished) one zoo training run and return its result; Ray runs it through
-    :func:`~sb3_mtte.experiments.zoo.sweep_trial.run_trial`."""
-    trial = config["trial"]
-    run_dir = Path(trial["run_dir"])
-    info = run_info.read_run_info(run_dir)
-    if info is None or not info.get("finished"):
-        command = trial_command(trial, Path(config["out"]), config["extra"], config["cpus"])
-        launcher.train(command[1:])
-        info = run_info.read_run_info(run_dir) or {}
-    result = {"timesteps": int(info.get("timesteps", 0)), "finished": bool(info.get("finished"))}
-    success = last_success(run_dir)
-    if success is not None:
-        result["success"] = success
-    return result
-
-
-def last_success(run_dir: Path) -> float | None:
-    """Mean success of the last evaluation of a run folder (``evaluations.npz``), or None."""
-    path = run_dir / "evaluations.npz"
-    if not path.is_file():
-        return None
-    data = run_info.read_npz(path)
-    if len(data["timesteps"]) == 0:
-        return None
-    return float(np.mean(data["success_rate"][-1]))
 
 
 def write_sweep_file(out: Path, trials: list[dict[str, Any]], args: argparse.Namespace, extra: Sequence[str]) -> None:
@@ -309,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     if unknown_envs:
         if args.budget != "full":
             parser.error(f"unknown --envs {' '.join(unknown_envs)}: give the benchmark (MT10) and --budget the budget")
-        parser.error(f"unknown --envs {' '.join(unknown_envs)}: {benchmark_help()}")
+        parser.error(f"unknown --envs {' '.join(unknown_envs)}: {benchmark_help(unknown_envs[0])}")
     if not launcher.has_flag(extra, "-conf", "--conf-file"):
         for algo in args.algos:
             missing = missing_entries_message(algo, [env_id_for(env, args.budget) for env in args.envs], "-- -conf")

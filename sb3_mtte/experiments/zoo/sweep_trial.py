@@ -44,14 +44,14 @@ def pin_to_cores(index: int, cpus_per_trial: float) -> list[int] | None:
 
 def run_trial(config: dict[str, Any]) -> dict[str, Any]:
     """Ray Tune trainable: tune and pin this process, then run (or resume, or skip when finished) one zoo training
-    run and report its result (:func:`~sb3_mtte.experiments.zoo.sweep.run_one`)."""
+    run and report its result (:func:`~sb3_mtte.experiments.zoo.sweep_run.run_one`)."""
     import sb3_mtte
 
     sb3_mtte.tune_process()  # before torch loads: the imports below load it
     cores = pin_to_cores(int(config["trial"].get("index", 0)), config["cpus"])
     from ray import tune
 
-    from sb3_mtte.experiments.zoo.sweep import run_one
+    from sb3_mtte.experiments.zoo.sweep_run import run_one
 
     result = run_one(config)
     if cores is not None:
