@@ -58,8 +58,8 @@ class MTSACTE(MTSAC):
     :param top_k: K, best episodes kept per task for the representation batches (30).
     :param q_loss_clip: V_clip of Eq. 16 (2000); None disables clipping.
     :param nt_step_size: alpha of Eq. 4, the virtual gradient-ascent step. Default 1e-3: small enough for the
-        first-order picture (J_i(theta^k) - J_i(theta) ~ alpha g_i . g_k) to hold, large enough to stand far
-        above float32 rounding of objectives of Q-value scale.
+        first-order picture (J_i(theta^k) - J_i(theta) ~ alpha g_i . g_k) to hold. The transfer matrix is computed
+        in float64, so its signs stay exact at Q up to 1e4 (docs/paper_silent.md).
     :param c_vae: c_vae of Eq. 14, weight of the VAE term (1e-4). Adam moves E_phi's log-std along the KL's
         consistently signed gradient whatever its size, while J^NT's pull on it is second order in the std: at 1e-2
         the std returned to the prior within about 20 J^rep steps on the development benchmark and z lost the task
@@ -184,7 +184,7 @@ class MTSACTE(MTSAC):
         if getattr(self, "mu", None) is None:
             n, dtype = self.n_tasks, self._actor_dtype()
             mu = th.zeros(n, dtype=th.long, device=self.device)
-            transfer = th.zeros(n, n, dtype=dtype, device=self.device)
+            transfer = th.zeros(n, n, dtype=th.float64, device=self.device)
             weights = th.full((n,), 1.0 / n, dtype=dtype, device=self.device)
             self._set_selection(TaskSelection(transfer, mu, th.zeros_like(mu, dtype=th.bool), weights))
             self.task_probe_accuracy = self.task_probe_accuracy_of_mean = self.z_std = float("nan")

@@ -41,6 +41,10 @@ class RepresentationBatch:
     z_noise: th.Tensor
     action_noise: th.Tensor
 
+    def to(self, dtype: th.dtype) -> RepresentationBatch:
+        """The same batch and noise in ``dtype``."""
+        return RepresentationBatch(self.obs.to(dtype), self.z_noise.to(dtype), self.action_noise.to(dtype))
+
     @classmethod
     def draw(cls, obs: th.Tensor, z_dim: int, action_dim: int) -> RepresentationBatch:
         """The batch of task-major observations ``(N, L, obs_dim)`` with fresh noise."""
@@ -57,18 +61,30 @@ class TaskObjectives:
     :param batch: the shared batch and noise.
     :param ent_coef: ``(N,)`` beta_i.
     :param chunk_size: theta^k per batched pass of :meth:`after_virtual_steps` (None: all at once).
+    :param dtype: the dtype of every evaluation (the batch's when None); theta, the critics, beta and the batch are
+        cast to it.
     """
 
     def __init__(
-        self, policy: MTSACTEPolicy, batch: RepresentationBatch, ent_coef: th.Tensor, chunk_size: int | None = None
+        self,
+        policy: MTSACTEPolicy,
+        batch: RepresentationBatch,
+        ent_coef: th.Tensor,
+        chunk_size: int | None = None,
+        dtype: th.dtype | None = None,
     ) -> None:
-        self.policy, self.batch, self.chunk_size = policy, batch, chunk_size
-        self.state = batch.obs[..., : policy.state_dim]
-        self.q_params = {k: v.detach() for k, v in policy.critic.task_parameters().items()}
-        self.ent_coef = ent_coef.detach()
+        self.dtype = batch.obs.dtype if dtype is None else dtype
+        self.policy, self.batch, self.chunk_size = policy, batch.to(self.dtype), chunk_size
+        self.state = self.batch.obs[..., : policy.state_dim]
+        self.q_params = {k: v.detach().to(self.dtype) for k, v in policy.critic.task_parameters().items()}
+        self.ent_coef = ent_coef.detach().to(self.dtype)
+
+    def in_dtype(self, dtype: th.dtype) -> TaskObjectives:
+        """The same objectives on the same batch and noise, evaluated in ``dtype``."""
+        return TaskObjectives(self.policy, self.batch, self.ent_coef, self.chunk_size, dtype)
 
     def theta(self) -> Params:
-        return {k: v.detach() for k, v in self.policy.actor.named_parameters()}
+        return {k: v.detach().to(self.dtype) for k, v in self.policy.actor.named_parameters()}
 
     def phi(self) -> tuple[Params, Params]:
         encoder = {k: v.detach() for k, v in self.policy.encoder.named_parameters()}
@@ -131,14 +147,23 @@ def virtual_parameters(theta: Params, grads: Params, step_size: float) -> Params
 
 
 def transfer_matrix(
-    objectives: TaskObjectives, z: th.Tensor, step_size: float, estimator: str = "virtual_step"
+    objectives: TaskObjectives,
+    z: th.Tensor,
+    step_size: float,
+    estimator: str = "virtual_step",
+    dtype: th.dtype = th.float64,
 ) -> th.Tensor:
-    """``(N, N)`` matrix [k, i] = J_i(theta^k) - J_i(theta) (Eq. 4-5), the input of mu (Eq. 6).
+    """``(N, N)`` matrix [k, i] = J_i(theta^k) - J_i(theta) (Eq. 4-5), the input of mu (Eq. 6), in ``dtype``.
 
     ``virtual_step`` evaluates it exactly; ``gradient_dot`` uses its first-order expansion alpha * g_k . g_i.
+
+    Each entry is a small difference of two means of Q-sized values. In float32 its rounding error grows with |Q|
+    and decides signs at Meta-World's Q near 1000, so the gradients, theta^k and both evaluations run in ``dtype``,
+    float64 by default (``docs/paper_silent.md``, "mu in float64").
     """
     if estimator not in ESTIMATORS:
         raise ValueError(f"nt_estimator must be one of {ESTIMATORS}, got {estimator!r}.")
+    objectives, z = objectives.in_dtype(dtype), z.to(dtype)
     theta = objectives.theta()
     grads = objectives.gradients(theta, z)
     if estimator == "gradient_dot":
