@@ -79,10 +79,16 @@ def stepped_actor(policy, batch, ent_coef, k: int, z: list[th.Tensor], step_size
     return actor_k.dist_params
 
 
-def loop_transfer(policy, batch, ent_coef, step_size: float) -> tuple[th.Tensor, th.Tensor]:
-    """J_i(theta) and the N x N matrix [k, i] = J_i(theta^k) - J_i(theta), with two plain loops."""
+def loop_transfer(
+    policy, batch, ent_coef, step_size: float, z: list[th.Tensor] | None = None
+) -> tuple[th.Tensor, th.Tensor]:
+    """J_i(theta) and the N x N matrix [k, i] = J_i(theta^k) - J_i(theta), with two plain loops.
+
+    ``z``: each task's embedding (default: drawn from ``policy``'s encoder with the batch's noise).
+    """
     n = policy.n_tasks
-    z = [loop_embedding(policy, batch, i)[0].detach() for i in range(n)]
+    if z is None:
+        z = [loop_embedding(policy, batch, i)[0].detach() for i in range(n)]
     actor = policy.actor.dist_params
     before = th.stack([loop_objective(policy, actor, batch, ent_coef, i, z[i]) for i in range(n)]).detach()
     matrix = th.zeros(n, n, dtype=before.dtype)
