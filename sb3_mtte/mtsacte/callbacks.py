@@ -14,7 +14,8 @@ class NegativeTransferLogCallback(BaseCallback):
     """Append the records that MTSACTE queues in ``negative_transfer_records`` to ``negative_transfer.jsonl``.
 
     The file lives in the logger's folder (``logger.get_dir()``); without one, the records are dropped. Each record
-    holds ``timesteps``, ``mu``, ``selected``, ``weights``, ``transfer_matrix``, ``task_probe_accuracy``,
+    holds ``timesteps``, ``mu``, ``selected``, ``weights``, ``transfer_matrix``, ``transfer_matrix_dtype`` (the
+    precision mu was counted in: ``"float64"``; a record without it counted in float32), ``task_probe_accuracy``,
     ``task_probe_accuracy_of_mean`` and ``z_std``. MTSACTE attaches this callback in ``learn`` by itself.
     Records are written at every event of the training loop, so they reach the file before the next checkpoint.
     """

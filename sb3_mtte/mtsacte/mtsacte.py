@@ -328,6 +328,7 @@ class MTSACTE(MTSAC):
                 "selected": selected.astype(int).tolist(),
                 "weights": weights.tolist(),
                 "transfer_matrix": self.transfer_matrix.cpu().numpy().astype(np.float64).tolist(),
+                "transfer_matrix_dtype": str(self.transfer_matrix.dtype).removeprefix("torch."),
                 "task_probe_accuracy": self.task_probe_accuracy,
                 "task_probe_accuracy_of_mean": self.task_probe_accuracy_of_mean,
                 "z_std": self.z_std,
