@@ -146,3 +146,28 @@ def test_gpu_and_envpool_records_are_drawn_apart_and_the_caption_names_the_proto
         table = table1(bench, benchmark_statistics(groups[bench], reps=5), reps=5)
         assert table.startswith(f"{bench}: final success")
         assert (" Trained on EnvPool (fresh goals), not Meta-World's benchmark protocol" in table) == named, bench
+
+
+def test_exact_mu_records_are_drawn_apart_beside_the_baselines(tmp_path):
+    """Ours with the float64 transfer matrix groups apart from Ours before it; SAC-MT, without mu, stands in both."""
+    source = tmp_path / "records"
+    shutil.copytree(SAMPLES, source)
+    sac = json.loads((SAMPLES / "MT10-cpu" / "mtsac_mt_seed0.json").read_text())
+    ours = {**sac, "algo": "mtsacte", "label": "Ours", "mu_computation": "float32"}
+    old = _copy(source, ours, seed=11)
+    new = _copy(source, ours, mu_computation="float64", seed=12)
+    assert (old.parent.name, new.parent.name) == ("MT10-cpu", "MT10-cpu-exact-mu")
+    groups = group_runs(records.load_runs([source]))
+    assert 11 in [run.seed for run in groups["MT10-cpu"]["Ours"]]
+    assert 12 not in [run.seed for run in groups["MT10-cpu"]["Ours"]]
+    assert [run.seed for run in groups["MT10-cpu-exact-mu"]["Ours"]] == [12]
+    assert groups["MT10-cpu-exact-mu"]["SAC-MT"] == groups["MT10-cpu"]["SAC-MT"]
+
+
+def test_the_precision_mu_was_counted_in():
+    assert Run(Path("."), {}).mu_computation is None  # no transfer matrix: SAC-MT
+    assert Run(Path("."), {}, nt_records=[{"mu": [0]}]).mu_computation == "float32"  # before the field
+    exact = [{"transfer_matrix_dtype": "float64"}] * 2
+    assert Run(Path("."), {}, nt_records=exact).mu_computation == "float64"
+    assert Run(Path("."), {}, nt_records=[{}, *exact]).mu_computation == "mixed"
+    assert records.run_from_record({"mu_computation": "float64"}, Path(".")).mu_computation == "float64"

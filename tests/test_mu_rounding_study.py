@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import pytest
-import torch as th
 from conftest import small_model_kwargs
 from script_loader import load_script
 
@@ -13,43 +12,41 @@ mu_rounding = load_script("scripts/studies/mu_rounding.py")
 
 
 @pytest.fixture(scope="module")
-def checkpoints(tmp_path_factory):
-    """Two checkpoints of a small toy run: as trained, and with every critic output moved by 1e4."""
+def checkpoint(tmp_path_factory):
+    """A model and its replay buffer after a small toy run."""
     folder = tmp_path_factory.mktemp("mu_rounding")
     model = MTSACTE("MlpPolicy", make_mt_env("toy-conflict", seed=0), **small_model_kwargs())
     model.learn(400)
-    paths = {}
-    for name, shift in (("trained", 0.0), ("shifted", 1e4)):
-        with th.no_grad():
-            model.policy.critic.q_net.layers[-1].bias.add_(shift)
-        model.save(folder / f"{name}.zip")
-        model.save_replay_buffer(folder / f"{name}.pkl")
-        paths[name] = (folder / f"{name}.zip", folder / f"{name}.pkl")
-    return paths
+    model.save(folder / "model.zip")
+    model.save_replay_buffer(folder / "buffer.pkl")
+    return folder / "model.zip", folder / "buffer.pkl"
 
 
-def test_reports_each_batch_and_applies_the_rule(checkpoints, tmp_path):
-    trained, shifted = checkpoints["trained"], checkpoints["shifted"]
-    args = [*trained, *shifted, *shifted, "--batches", "3", "--batch-size", "8", "--markdown", str(tmp_path / "t.md")]
-    result = mu_rounding.main([str(a) for a in args])
+def test_reports_each_batch_and_applies_the_rule(checkpoint, tmp_path):
+    args = [*checkpoint, *checkpoint, "--batches", "3", "--batch-size", "8", "--shifts", "1e4"]
+    result = mu_rounding.main([str(a) for a in [*args, "--markdown", tmp_path / "t.md"]])
     reports = result["checkpoints"]
-    assert [len(r["batches"]) for r in reports] == [3, 3, 3]
+    assert [len(r["batches"]) for r in reports] == [3, 3]
     for report in reports:
-        for row in report["batches"]:
+        for row in [*report["batches"], *(r["shifted"]["10000.0"] for r in report["batches"])]:
             differing = sum(a != b for a, b in zip(row["mu_old"], row["mu_exact"], strict=True))
             assert row["tasks_with_mu_differing"] == differing
         expected = sum(row["tasks_with_mu_differing"] >= 2 for row in report["batches"])
         assert report["batches_with_mu_differing"] == expected
         assert report["counts"] == (expected >= 2)
-    # Q near 1e4: the float32 matrix's signs are rounding, the float64 matrix's are those of the trained model
-    assert reports[1]["batches"][0]["mean_abs_q"] > 5e3 > reports[0]["batches"][0]["mean_abs_q"]
-    assert sum(row["off_diagonal_signs_differing"] for row in reports[1]["batches"]) > 0
-    assert [row["mu_exact"] for row in reports[1]["batches"]] == [row["mu_exact"] for row in reports[2]["batches"]]
     assert result["checkpoints_counting"] == sum(r["counts"] for r in reports)
     assert result["rule_holds"] == (result["checkpoints_counting"] >= 2)
-    assert (tmp_path / "t.md").read_text().count("\n") == 2 + 3
+    # Q moved to 1e4: the float32 signs turn to rounding, the exact mu stays that of the saved model
+    rows = reports[0]["batches"]
+    shifted = [row["shifted"]["10000.0"] for row in rows]
+    assert all(s["mean_abs_q"] > 5e3 > row["mean_abs_q"] for s, row in zip(shifted, rows, strict=True))
+    assert [s["mu_exact"] for s in shifted] == [row["mu_exact"] for row in rows]
+    assert sum(s["off_diagonal_signs_differing"] for s in shifted) > sum(
+        row["off_diagonal_signs_differing"] for row in rows
+    )
+    assert (tmp_path / "t.md").read_text().count("\n") == 2 + 2 + 1 + 2 + 2
 
 
-def test_refuses_an_unpaired_path(checkpoints):
+def test_refuses_an_unpaired_path(checkpoint):
     with pytest.raises(SystemExit):
-        mu_rounding.main([str(checkpoints["trained"][0])])
+        mu_rounding.main([str(checkpoint[0])])

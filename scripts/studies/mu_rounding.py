@@ -8,6 +8,9 @@ does (top-K when the model uses it) and reports, per batch:
   one;
 - mu from each.
 
+``--shifts C ...`` repeats each batch with every critic output moved by C, which leaves the exact matrix unchanged:
+it shows what the float32 computation would count at larger Q.
+
 The rule of the study (``docs/results.md``, "mu in float64"): a checkpoint counts when the two mu differ for at
 least 2 tasks in more than half of its batches; the rule holds when 2 or more checkpoints count.
 Prints one JSON object; ``--out`` also writes it, ``--markdown`` writes the table of ``docs/nt_measure.md``.
@@ -33,11 +36,25 @@ MIN_TASKS_DIFFERING = 2
 MIN_CHECKPOINTS = 2
 
 
-def batch_report(model: MTSACTE, batch_size: int) -> dict[str, Any]:
-    """The mean |Q|, the sign differences and both mu on one batch drawn as the algorithm draws it."""
+def batch_report(model: MTSACTE, batch_size: int, shifts: list[float]) -> dict[str, Any]:
+    """The reports of one batch drawn as the algorithm draws it: the model as saved, then with every critic output
+    moved by each shift."""
     buffer = model.replay_buffer
     data = buffer.sample_top_k(batch_size) if model.use_topk else buffer.sample(batch_size)  # type: ignore[union-attr]
     batch = RepresentationBatch.draw(data.observations, model.policy.z_dim, model.policy.action_dim)
+    report = one_batch_report(model, data, batch)
+    bias = model.policy.critic.q_net.layers[-1].bias
+    for shift in shifts:
+        with th.no_grad():
+            bias.add_(shift)
+        report.setdefault("shifted", {})[str(shift)] = one_batch_report(model, data, batch)
+        with th.no_grad():
+            bias.sub_(shift)
+    return report
+
+
+def one_batch_report(model: MTSACTE, data, batch: RepresentationBatch) -> dict[str, Any]:
+    """The mean |Q|, the sign differences and both mu on one batch."""
     with th.no_grad():
         mean_abs_q = float(model.policy.critic(data.observations, data.actions).abs().mean())
         objectives = TaskObjectives(model.policy, batch, model.entropy_coefficients, chunk_size=1)
@@ -59,11 +76,13 @@ def batch_report(model: MTSACTE, batch_size: int) -> dict[str, Any]:
     }
 
 
-def checkpoint_report(model_path: Path, buffer_path: Path, batches: int, batch_size: int, seed: int) -> dict:
+def checkpoint_report(
+    model_path: Path, buffer_path: Path, batches: int, batch_size: int, seed: int, shifts: list[float]
+) -> dict:
     model = MTSACTE.load(model_path, device="cpu")
     model.load_replay_buffer(buffer_path)
     th.manual_seed(seed)
-    rows = [batch_report(model, batch_size) for _ in range(batches)]
+    rows = [batch_report(model, batch_size, shifts) for _ in range(batches)]
     differing = sum(row["tasks_with_mu_differing"] >= MIN_TASKS_DIFFERING for row in rows)
     return {
         "model": str(model_path),
@@ -89,6 +108,23 @@ def markdown(reports: list[dict]) -> str:
             f"| {report['timesteps']:,} | {mean_q:.1f} | {median_t:.1e} | {signs} | "
             f"{report['batches_with_mu_differing']} of {len(rows)} | {'yes' if report['counts'] else 'no'} |"
         )
+    shifts = list(reports[0]["batches"][0].get("shifted", {})) if reports else []
+    if shifts:
+        lines += [
+            "",
+            "| env steps | critic outputs moved by | mean \\|Q\\| | signs differing, per batch | batches with mu "
+            "differing for 2+ tasks |",
+            "|--:|--:|--:|---|--:|",
+        ]
+        for report in reports:
+            for shift in shifts:
+                rows = [row["shifted"][shift] for row in report["batches"]]
+                mean_q = sum(row["mean_abs_q"] for row in rows) / len(rows)
+                signs = ", ".join(str(row["off_diagonal_signs_differing"]) for row in rows)
+                differing = sum(row["tasks_with_mu_differing"] >= MIN_TASKS_DIFFERING for row in rows)
+                lines.append(
+                    f"| {report['timesteps']:,} | {float(shift):.0e} | {mean_q:.1f} | {signs} | {differing} of {len(rows)} |"
+                )
     return "\n".join(lines) + "\n"
 
 
@@ -98,6 +134,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--batches", type=int, default=10)
     parser.add_argument("--batch-size", type=int, default=128, help="L, per task")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--shifts", type=float, nargs="*", default=[], metavar="C", help="critic outputs moved by C")
     parser.add_argument("--out", type=Path)
     parser.add_argument("--markdown", type=Path)
     args = parser.parse_args(argv)
@@ -106,7 +143,9 @@ def main(argv: list[str] | None = None) -> dict:
     if args.batches < 1 or args.batch_size < 1:
         parser.error("--batches and --batch-size must be at least 1")
     pairs = list(zip(args.paths[::2], args.paths[1::2], strict=True))
-    reports = [checkpoint_report(model, buffer, args.batches, args.batch_size, args.seed) for model, buffer in pairs]
+    reports = [
+        checkpoint_report(model, buffer, args.batches, args.batch_size, args.seed, args.shifts) for model, buffer in pairs
+    ]
     counting = sum(report["counts"] for report in reports)
     result = {
         "sb3_mtte": __version__,

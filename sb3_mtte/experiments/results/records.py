@@ -7,7 +7,9 @@ repository. Its fields (format :data:`RECORD_VERSION`):
   ``seed``, ``task_names``, ``n_tasks``, ``episode_length``, ``started`` (when the run started: with env id, label and
   seed it names the run), ``reward_function_version`` (Meta-World's reward functions, null for a toy benchmark; a
   record without the field was made with ``"v2"``), ``env_protocol`` (how the training envs differ from Meta-World's
-  benchmark, :func:`sb3_mtte.envs.env_protocol`; a record without it was trained on Meta-World's own envs);
+  benchmark, :func:`sb3_mtte.envs.env_protocol`; a record without it was trained on Meta-World's own envs),
+  ``mu_computation`` (MTSACTE: the precision of the transfer matrix mu was counted from, ``"float32"`` before it was
+  exact, ``"float64"`` after; null without mu);
 - ``device``: the machine's CPU count, torch threads and CUDA device, its ``host`` and ``trained_on`` (``"cuda"``,
   ``"cpu"``); a record without it was trained on a CPU;
 - ``budget``: ``n_timesteps`` (planned env steps, all tasks), ``timesteps`` (reached) and ``finished``;
@@ -30,8 +32,8 @@ A run that did not finish (``finished: false``) is skipped, named in one line, u
 given; its record then says so, and the tables mark it.
 
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
-Meta-World's v1 rewards, ``<env id>-envpool/`` for runs trained on EnvPool, ``<env id>-gpu/`` for runs trained on
-CUDA; the default ``--out`` is ``docs/records``)::
+Meta-World's v1 rewards, ``<env id>-envpool/`` for runs trained on EnvPool, ``<env id>-exact-mu/`` for MTSACTE runs
+whose mu was counted in float64, ``<env id>-gpu/`` for runs trained on CUDA; the default ``--out`` is ``docs/records``)::
 
     sb3-mtte record RUNS_DIR [--out docs/records] [--include-unfinished]
 """
@@ -137,6 +139,7 @@ def run_record(run: Run) -> dict[str, Any]:
         "episode_length": info.get("episode_length"),
         "reward_function_version": run.reward_function_version,
         "env_protocol": run.env_protocol,
+        "mu_computation": run.mu_computation,
         **_device_field(info),
         "started": info.get("started"),
         "budget": {
@@ -176,7 +179,11 @@ def record_path(record: dict[str, Any], out: Path) -> Path:
     :func:`~sb3_mtte.experiments.results.runs.results_benchmark` (the env id for Meta-World's default rewards and
     envs on a CPU)."""
     bench = results_benchmark(
-        str(record["env_id"]), record.get("reward_function_version"), record.get("env_protocol"), device_type_of(record)
+        str(record["env_id"]),
+        record.get("reward_function_version"),
+        record.get("env_protocol"),
+        device_type_of(record),
+        record.get("mu_computation"),
     )
     return out / safe_name(bench) / f"{safe_name(str(record['algo']))}_seed{record['seed']}.json"
 
@@ -252,6 +259,7 @@ def run_from_record(record: dict[str, Any], path: Path) -> Run:
         "started",
         "reward_function_version",
         "env_protocol",
+        "mu_computation",
         "device",
     )
     info = {key: record.get(key) for key in keys}

@@ -117,6 +117,16 @@ class Run:
         return self.info.get("env_protocol")
 
     @property
+    def mu_computation(self) -> str | None:
+        """The precision MTSACTE's transfer matrix, hence mu, was computed in: ``"float64"``, or ``"float32"`` for
+        runs and records that predate the field (where rounding can decide mu at large Q); ``"mixed"`` for a run
+        resumed across the change; None for an algorithm without mu."""
+        if "mu_computation" in self.info:
+            return self.info["mu_computation"]
+        dtypes = {record.get("transfer_matrix_dtype", "float32") for record in self.nt_records}
+        return (dtypes.pop() if len(dtypes) == 1 else "mixed") if dtypes else None
+
+    @property
     def device_type(self) -> str | None:
         """What the run trained on (``"cuda"``, ``"cpu"``; :func:`device_type_of`)."""
         return device_type_of(self.info)
@@ -178,6 +188,9 @@ def device_type_of(info: Mapping[str, Any]) -> str | None:
 
 GPU_SUFFIX = "-gpu"
 """What follows the env id of runs trained on CUDA (``MT10-100k-gpu``), drawn apart from the CPU runs."""
+EXACT_MU_SUFFIX = "-exact-mu"
+"""What follows the env id of MTSACTE runs whose mu was counted from a float64 transfer matrix
+(``MT10-100k-exact-mu``), drawn apart from the float32 runs before them."""
 
 
 def results_benchmark(
@@ -185,29 +198,44 @@ def results_benchmark(
     reward_function_version: str | None,
     env_protocol: Mapping[str, Any] | None = None,
     device_type: str | None = None,
+    mu_computation: str | None = None,
 ) -> str:
     """The benchmark a run's results are drawn under: its env id, followed by what sets its runs apart, so that
     they never share a table with the others: its Meta-World reward functions when not the default
     (``MT10-cpu-reward-v1``), its backend when it is not the benchmark's protocol (``MT10-100k-envpool``), and
-    :data:`GPU_SUFFIX` when it trained on CUDA."""
+    :data:`EXACT_MU_SUFFIX` when MTSACTE's mu was not counted in float32, and :data:`GPU_SUFFIX` when it trained
+    on CUDA."""
     bench = env_id
     if reward_function_version not in (None, REWARD_FUNCTION_VERSIONS[0]):
         bench += f"-reward-{reward_function_version}"
     if env_protocol and env_protocol.get("benchmark_protocol") is False:
         bench += f"-{env_protocol.get('backend')}"
+    if mu_computation not in (None, "float32"):
+        bench += EXACT_MU_SUFFIX if mu_computation == "float64" else f"-{mu_computation}-mu"
     return bench + GPU_SUFFIX if device_type == "cuda" else bench
 
 
 def run_results_benchmark(run: Run) -> str:
     """:func:`results_benchmark` of a run."""
-    return results_benchmark(run.benchmark, run.reward_function_version, run.env_protocol, run.device_type)
+    return results_benchmark(
+        run.benchmark, run.reward_function_version, run.env_protocol, run.device_type, run.mu_computation
+    )
 
 
 def group_runs(runs: Sequence[Run]) -> dict[str, dict[str, list[Run]]]:
-    """benchmark (:func:`results_benchmark`) -> algorithm label -> runs (its seeds)."""
+    """benchmark (:func:`results_benchmark`) -> algorithm label -> runs (its seeds).
+
+    The runs of an algorithm without mu (SAC-MT, say) also stand in the exact-mu group of their benchmark
+    (:data:`EXACT_MU_SUFFIX`): how mu is counted does not touch them.
+    """
     groups: dict[str, dict[str, list[Run]]] = {}
     for run in runs:
         groups.setdefault(run_results_benchmark(run), {}).setdefault(run.label, []).append(run)
+    for bench in [bench for bench in groups if EXACT_MU_SUFFIX in bench]:
+        for label, members in groups.get(bench.replace(EXACT_MU_SUFFIX, ""), {}).items():
+            without_mu = [run for run in members if run.mu_computation is None]
+            if without_mu and label not in groups[bench]:
+                groups[bench][label] = without_mu
     return groups
 
 
