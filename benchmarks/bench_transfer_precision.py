@@ -84,7 +84,7 @@ def main() -> None:
     harmful = th.arange(n - model.n_select)  # |C \ C_s| = N - M, the same for both dtypes
     names = {"float32": th.float32, "float64": th.float64}
     times: dict[str, list[float]] = {name: [] for name in names}
-    for name, dtype in names.items():  # warm-up
+    for dtype in names.values():  # warm-up
         rep_step(model, obs, dtype, harmful)
     for _ in range(args.rounds):
         for name, dtype in names.items():
@@ -94,9 +94,8 @@ def main() -> None:
             times[name].append((time.perf_counter() - start) / args.repeats)
     medians = {name: statistics.median(values) for name, values in times.items()}
     result = {
-        "command": "python benchmarks/bench_transfer_precision.py " + " ".join(
-            f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if v is not None and k != "out"
-        ),
+        "command": "python benchmarks/bench_transfer_precision.py "
+        + " ".join(f"--{k.replace('_', '-')} {v}" for k, v in vars(args).items() if v is not None and k != "out"),
         "sb3_mtte": __version__,
         "torch": th.__version__,
         "processor": platform.processor() or platform.machine(),

@@ -121,3 +121,20 @@ def test_a_model_built_on_declared_tasks_does_not_reset_the_env(toy_env, monkeyp
     assert resets == []
     model.learn(8)
     assert resets == [1]
+
+
+@pytest.mark.parametrize("cls", [MTSAC, MTSACTE])
+def test_predict_takes_float64_lists_and_single_observations_as_sb3_does(toy_env, cls):
+    """SB3 casts observations to float32: float64 arrays, lists and one observation act as the float32 batch does."""
+    kwargs = {"policy_kwargs": {"net_arch": [16, 16]}, "learning_starts": 40, "seed": 0, "device": "cpu"}
+    model = cls("MlpPolicy", toy_env, **kwargs)
+    obs = toy_env.reset()
+    expected, _ = model.predict(obs, deterministic=True)
+    for given in (obs.astype(np.float64), obs.tolist()):
+        actions, _ = model.predict(given, deterministic=True)
+        np.testing.assert_array_equal(actions, expected)
+    for row in range(len(obs)):
+        for given in (obs[row].astype(np.float64), obs[row].tolist(), obs[row]):
+            action, _ = model.predict(given, deterministic=True)
+            assert action.shape == expected[row].shape
+            np.testing.assert_allclose(action, expected[row], rtol=1e-5, atol=1e-6)  # a batch of one: other rounding

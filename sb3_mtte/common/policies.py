@@ -12,6 +12,7 @@ from typing import Any
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import preprocess_obs
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from torch import nn
 from torch.func import functional_call, vmap
@@ -181,3 +182,11 @@ class MultiTaskPolicy(BasePolicy):
 
     def forward(self, obs: PyTorchObs, deterministic: bool = False) -> th.Tensor:
         return self._predict(obs, deterministic)
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
+        """:meth:`act` on the observations cast as SB3 casts them (float64 arrays and lists become float32)."""
+        return self.act(preprocess_obs(observation, self.observation_space), deterministic)  # type: ignore[arg-type]
+
+    def act(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
+        """Actions ``(B, A)`` for float observations ``(B, state_dim + N)`` in any order."""
+        raise NotImplementedError

@@ -19,7 +19,6 @@ from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Schedule
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer, MultiTaskReplayBufferSamples
-from sb3_mtte.common.captured_action import action_runner, resolve_action_path
 from sb3_mtte.common.captured_update import set_learning_rate
 from sb3_mtte.common.losses import clipped_sample_fraction, clipped_soft_q_loss, sac_task_objective
 from sb3_mtte.common.multitask_algorithm import MultiTaskOffPolicyAlgorithm
@@ -78,8 +77,7 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
     :param cagrad_c: CAGrad's c in (0, 1), radius of the ball ||d - g0|| <= c ||g0||.
     :param update_path: ``"auto"`` (a CUDA graph of the update on CUDA where the update allows it, else eager),
         ``"eager"`` or ``"cuda_graph"`` (:mod:`sb3_mtte.mtsac.update_path`). The same numbers on the CPU; on CUDA
-        the graph's agree within float tolerance (its learning rates are float32 tensors). Acting takes a second
-        graph on CUDA unless ``"eager"`` (:mod:`sb3_mtte.common.captured_action`).
+        the graph's agree within float tolerance (its learning rates are float32 tensors).
     :param overlap_env_step: run each step's updates while the envs take the step, between sending the actions and
         receiving the observations; each update then samples the transitions before its step
         (:mod:`sb3_mtte.common.overlapped_rollout`). Off by default: it changes the algorithm.
@@ -257,8 +255,6 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         record = self._record_train_stats
         self.update_monitor = UpdateMonitor(self.device, deferred, record, MEAN_STATS, self._n_updates)
         self._update_runner = update_runner(path, self._update, self._optimizers, self.device, capture)
-        acting = resolve_action_path(self.update_path, self.device) if capture else "cuda_graph"
-        self.policy.action_runner = action_runner(acting, self.policy.act, self.device, capture)
 
     def _optimizers(self) -> list[th.optim.Optimizer]:
         optimizers = [self.actor.optimizer, self.critic.optimizer]

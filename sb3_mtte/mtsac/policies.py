@@ -16,10 +16,9 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import Schedule
 from torch import nn
 
-from sb3_mtte.common.captured_action import CapturedAction
 from sb3_mtte.common.ensemble import EnsembleLinear, EnsembleMLP, mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
 
@@ -152,9 +151,6 @@ class MTSACPolicy(MultiTaskPolicy):
     """
 
     actor_class: type[MultiTaskActor] = SharedActor
-    action_runner: CapturedAction | None = None
-    """What ``predict`` runs: None, :meth:`act` eagerly, or its CUDA graph (set by the algorithm on the fast path)."""
-
     def __init__(
         self,
         observation_space: spaces.Box,
@@ -183,13 +179,8 @@ class MTSACPolicy(MultiTaskPolicy):
             "actor_kwargs": self.actor_kwargs,
         }
 
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        if self.action_runner is None:
-            return self.act(observation, deterministic)
-        return self.action_runner(observation, deterministic)
-
     def act(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
-        """Actions for observations in any order: the eager acting function, which the acting graph replays."""
+        """Actions for observations in any order."""
         return self.actor.act(observation, deterministic)
 
     def set_training_mode(self, mode: bool) -> None:

@@ -8,9 +8,8 @@ from typing import Any
 
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
+from stable_baselines3.common.type_aliases import Schedule
 
-from sb3_mtte.common.captured_action import CapturedAction
 from sb3_mtte.common.distributions import gaussian_sample, split_mean_log_std, squashed_gaussian
 from sb3_mtte.common.ensemble import mlp
 from sb3_mtte.common.policies import MultiTaskActor, MultiTaskPolicy
@@ -76,9 +75,6 @@ class MTSACTEPolicy(MultiTaskPolicy):
         :class:`~sb3_mtte.common.policies.MultiTaskPolicy`.
     """
 
-    action_runner: CapturedAction | None = None
-    """What ``predict`` runs: None, :meth:`act` eagerly, or its CUDA graph (set by the algorithm on the fast path)."""
-
     def __init__(
         self,
         observation_space: spaces.Box,
@@ -136,13 +132,8 @@ class MTSACTEPolicy(MultiTaskPolicy):
             z = self.embed(obs)
         return self.actor(self.actor_input(obs[..., : self.state_dim], z), noise)
 
-    def _predict(self, observation: PyTorchObs, deterministic: bool = False) -> th.Tensor:
-        if self.action_runner is None:
-            return self.act(observation, deterministic)
-        return self.action_runner(observation, deterministic)
-
     def act(self, observation: th.Tensor, deterministic: bool = False) -> th.Tensor:
-        """z ~ E_phi, then pi_theta's actions: the eager acting function, which the acting graph replays."""
+        """z ~ E_phi, then pi_theta's actions, for observations in any order."""
         z = self.embed(observation, deterministic and self.deterministic_z == "mean")
         return self.actor.act(self.actor_input(observation[..., : self.state_dim], z), deterministic)
 

@@ -95,8 +95,8 @@ def checkpoint_report(
 
 def markdown(reports: list[dict]) -> str:
     lines = [
-        "| env steps | mean \\|Q\\| | median \\|off-diagonal T\\| | signs differing, per batch | batches with mu differing "
-        "for 2+ tasks | counts |",
+        "| env steps | mean \\|Q\\| | median \\|off-diagonal T\\| | signs differing, per batch "
+        "| batches with mu differing for 2+ tasks | counts |",
         "|--:|--:|--:|---|--:|---|",
     ]
     for report in reports:
@@ -122,9 +122,8 @@ def markdown(reports: list[dict]) -> str:
                 mean_q = sum(row["mean_abs_q"] for row in rows) / len(rows)
                 signs = ", ".join(str(row["off_diagonal_signs_differing"]) for row in rows)
                 differing = sum(row["tasks_with_mu_differing"] >= MIN_TASKS_DIFFERING for row in rows)
-                lines.append(
-                    f"| {report['timesteps']:,} | {float(shift):.0e} | {mean_q:.1f} | {signs} | {differing} of {len(rows)} |"
-                )
+                cells = [f"{report['timesteps']:,}", f"{float(shift):.0e}", f"{mean_q:.1f}", signs]
+                lines.append(f"| {' | '.join(cells)} | {differing} of {len(rows)} |")
     return "\n".join(lines) + "\n"
 
 
@@ -144,7 +143,8 @@ def main(argv: list[str] | None = None) -> dict:
         parser.error("--batches and --batch-size must be at least 1")
     pairs = list(zip(args.paths[::2], args.paths[1::2], strict=True))
     reports = [
-        checkpoint_report(model, buffer, args.batches, args.batch_size, args.seed, args.shifts) for model, buffer in pairs
+        checkpoint_report(model, buffer, args.batches, args.batch_size, args.seed, args.shifts)
+        for model, buffer in pairs
     ]
     counting = sum(report["counts"] for report in reports)
     result = {

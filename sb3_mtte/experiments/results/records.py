@@ -33,7 +33,8 @@ given; its record then says so, and the tables mark it.
 
 Records live in the repository as ``docs/records/<env id>/<algo>_seed<k>.json`` (``<env id>-reward-v1/`` for runs on
 Meta-World's v1 rewards, ``<env id>-envpool/`` for runs trained on EnvPool, ``<env id>-exact-mu/`` for MTSACTE runs
-whose mu was counted in float64, ``<env id>-gpu/`` for runs trained on CUDA; the default ``--out`` is ``docs/records``)::
+whose mu was counted in float64, ``<env id>-gpu/`` for runs trained on CUDA; the default ``--out`` is
+``docs/records``)::
 
     sb3-mtte record RUNS_DIR [--out docs/records] [--include-unfinished]
 """
