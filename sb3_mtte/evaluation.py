@@ -55,11 +55,12 @@ class SuccessResult:
         self.mean = float(self.success_rate.mean()) if self.success_rate.size else float("nan")
 
     def as_dict(self) -> dict[str, Any]:
-        """JSON-friendly form: ``{"mean": m, "per_task": {name: rate}}``."""
-        return {
-            "mean": self.mean,
-            "per_task": {name: float(rate) for name, rate in zip(self.task_names, self.success_rate, strict=True)},
-        }
+        """JSON-friendly form: ``{"mean": m, "per_task": {name: rate}}``; a name that several tasks share is followed
+        by each task's index, ``"Pendulum-v1 (task 1)"``, so that every task keeps its own key."""
+        shared = {name for name in self.task_names if self.task_names.count(name) > 1}
+        keys = [f"{name} (task {i})" if name in shared else name for i, name in enumerate(self.task_names)]
+        per_task = {key: float(rate) for key, rate in zip(keys, self.success_rate, strict=True)}
+        return {"mean": self.mean, "per_task": per_task}
 
 
 def _set_eval_mode(env: VecEnv, enabled: bool, terminate_on_success: bool) -> bool:
@@ -145,6 +146,7 @@ def _run_episodes(
     """Step all sub-envs until each has finished ``episodes`` episodes; return each one's success fraction."""
     done_count = np.zeros(n_tasks, dtype=np.int64)
     success_count = np.zeros(n_tasks, dtype=np.int64)
+    reported = np.zeros(n_tasks, dtype=bool)
     obs = env.reset()
     state = None
     episode_start = np.ones(n_tasks, dtype=bool)
@@ -155,9 +157,17 @@ def _run_episodes(
             if done_count[i] < episodes:
                 done_count[i] += 1
                 success_count[i] += bool(infos[i].get("is_success", False))
+                reported[i] |= "is_success" in infos[i]
                 if on_episode is not None:
                     on_episode(int(i))
         episode_start = dones
+    if not reported.all():
+        silent = ", ".join(str(i) for i in np.flatnonzero(~reported))
+        warnings.warn(
+            f"Tasks {silent} report no is_success at the end of their episodes: their success counts as 0. "
+            "Wrap such an env so that its info holds is_success (OneHotTaskWrapper's success_key names the info key).",
+            stacklevel=3,
+        )
     return success_count / episodes
 
 

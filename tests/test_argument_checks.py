@@ -40,7 +40,7 @@ MTSAC_BAD_VALUES = {
     "replay_buffer_kwargs": ([("top_k", 3)], None),
     "stats_window_size": (100.0, 0),
     "tensorboard_log": (5, None),
-    "policy_kwargs": ("dict(net_arch=[8])", None),
+    "policy_kwargs": ("dict(net_arch=[8])", {"net_arch": [0]}),
     "verbose": ("1", 3),
     "seed": (1.5, -3),
     "device": (0, "gpu"),
@@ -131,11 +131,22 @@ def test_a_wrong_policy_names_the_valid_ones(toy_env, no_work, cls, policy, expe
         ("gamma", 1.5, r"^gamma \(the discount factor\) must be a number in \[0, 1\] such as 0\.99, got gamma=1\.5\.$"),
         ("nt_measure", "medain", r"^nt_measure must be one of \('per_batch', 'mean', '.*did you mean mean\?$"),
         ("n_select", "two", r"^n_select \(M, .*\) must be None \(N // 2\) or an int with 1 <= M < N, got n_select="),
+        ("policy_kwargs", {"net_arch": [0]}, r"^policy_kwargs must be a dict or None, its net_arch positive widths "),
+        ("policy_kwargs", {"net_arch": {"pi": [-5]}}, r"^policy_kwargs must .* net_arch positive widths .*got poli"),
+        ("policy_kwargs", {"z_dim": 0}, r"^policy_kwargs must .* its z_dim a positive int"),
     ],
 )  # fmt: skip
 def test_the_issue_cases_name_the_range(toy_env, no_work, name, value, expected):
     with pytest.raises(ValueError, match=expected):
         MTSACTE("MlpPolicy", toy_env, **small_model_kwargs(**{name: value}))
+
+
+@pytest.mark.parametrize("cls", [MTSAC, MTSACTE])
+def test_a_buffer_without_room_for_one_batch_per_task_is_refused(toy_env, cls):
+    with pytest.raises(ValueError, match=r"^buffer_size=10 holds 2 transitions per task, fewer than one batch "
+                       r"\(batch_size=8 per task\): give buffer_size >= N \* batch_size = 32\.$"):  # fmt: skip
+        cls("MlpPolicy", toy_env, **kwargs_of(cls, buffer_size=10))
+    cls("MlpPolicy", toy_env, **kwargs_of(cls, buffer_size=32))  # one batch per task: accepted
 
 
 def test_the_checks_run_without_an_env_and_with_the_task_count():
@@ -149,6 +160,8 @@ def test_the_checks_run_without_an_env_and_with_the_task_count():
         check_arguments(MTSACTE, {"n_select": "two"})
     with pytest.raises(ValueError, match="did you mean MultiHeadPolicy"):
         check_arguments(MTSAC, {"policy": "MultiHeadPolicyy", "unknown_key": 1})
+    with pytest.raises(ValueError, match=r"buffer_size=400 holds 100 transitions per task"):
+        check_arguments(MTSAC, {"buffer_size": 400}, n_tasks=4)  # batch_size: the class's 128
 
 
 @pytest.mark.parametrize(
@@ -158,6 +171,9 @@ def test_the_checks_run_without_an_env_and_with_the_task_count():
         ("mtsac_mt", "policy:'MultiHeadPolicyy'", r"^policy 'MultiHeadPolicyy' is not a policy of MTSAC: did you "),
         ("mtsacte", "tau:5", r"^tau \(.*\) must be a number in \(0, 1\]"),
         ("mtsacte", "gamma:1.5", r"^gamma \(the discount factor\) must be a number in \[0, 1\]"),
+        ("mtsac_mt", "buffer_size:10", r"^buffer_size=10 holds 2 transitions per task, fewer than one batch"),
+        ("mtsacte", "policy_kwargs:'dict(net_arch=[-5])'", r"^policy_kwargs must be a dict or None, its net_arch "),
+        ("mtsac_mt", "learning_rate:'\"abc\"'", r"^learning_rate must be a positive number such as 3e-4, or 'lin_"),
     ],
 )
 def test_params_of_the_wrong_type_or_range_end_with_one_line(tmp_path, algo, params, expected):

@@ -152,3 +152,54 @@ def test_the_evaluations_file_is_replaced_whole(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["evaluations.npz"]
     with np.load(tmp_path / "evaluations.npz") as data:
         assert data["timesteps"].tolist() == [100, 200] and data["success_rate"].shape == (2, 4)
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        (["--exp-id", "-5"], "argument --exp-id: -5 is negative: give 0 or more"),
+        (["--keep-buffers", "-1"], "argument --keep-buffers: -1 is negative: give 0 or more"),
+        (["--num-threads", "0"], "argument --num-threads: 0 threads: give 1 or more, or -1 for PyTorch's default"),
+        (["-n", "1e5"], "argument -n/--n-timesteps: invalid int value: '1e5'"),
+        (["--seed", str(10**20)], f"argument --seed: {10**20} is out of range: give 0 to 2**32 - 1, or -1 for a random"
+         " seed"),
+    ],
+)
+def test_train_refuses_a_flag_out_of_range_in_one_line(tmp_path, capsys, flags, expected):
+    command = lambda argv: zoo_main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *argv])  # noqa: E731
+    assert one_line_error(capsys, command, flags) == expected
+    assert not (tmp_path / "mtsac_mt").exists()
+
+
+@pytest.mark.parametrize("command", [plot.main, records.main, evaluate.main])
+def test_a_parser_error_is_one_line_without_the_usage_block(tmp_path, capsys, command):
+    message = one_line_error(capsys, command, [str(tmp_path), "--no-such-flag"])
+    assert message == "unrecognized arguments: --no-such-flag"
+
+
+@pytest.mark.parametrize(
+    ("flags", "expected"),
+    [
+        (["--dpi", "0"], "--dpi 0: give a positive int"),
+        (["--dpi", "-5"], "--dpi -5: give a positive int"),
+        (["--smooth", "0"], "--smooth 0: give a positive int (1: no smoothing)"),
+        (["--smooth", "-3"], "--smooth -3: give a positive int (1: no smoothing)"),
+    ],
+)
+def test_plot_refuses_a_resolution_or_window_below_one_before_any_work(tmp_path, capsys, flags, expected):
+    out = tmp_path / "figures"
+    assert one_line_error(capsys, plot.main, [str(tmp_path), "--out", str(out), *flags]) == expected
+    assert not out.exists()
+
+
+def test_version(capsys):
+    assert zoo_main(["--version"]) == capsys.readouterr().out.split()[-1]
+
+
+def test_a_name_equal_but_for_case_is_suggested_first():
+    from sb3_mtte.common.utils import did_you_mean
+    from sb3_mtte.experiments.zoo.configs import missing_entries_message
+
+    assert did_you_mean("mtsacTE", ["mtsac", "mtsacte"]) == "did you mean mtsacte?"
+    assert did_you_mean("mt10-smoke", ["MT10", "MT10-smoke", "MT20-smoke"]) == "did you mean MT10-smoke?"
+    assert ": did you mean MT10-smoke? (its entries: " in missing_entries_message("mtsacte", ["mt10-smoke"])

@@ -134,3 +134,31 @@ def test_callback_logs_and_saves(tmp_path):
     assert saved["success_rate"].shape == (2, 4)
     assert list(saved["task_names"]) == names
     assert callback.last_result is not None and callback.last_result.success_rate.shape == (4,)
+
+
+class _ZeroActions:
+    """A predictor that always acts 0."""
+
+    def predict(self, obs, state=None, episode_start=None, deterministic=True):
+        return np.zeros((len(obs), 1), dtype=np.float32), state
+
+
+def test_tasks_of_one_name_keep_their_keys_and_a_missing_success_flag_is_said_once():
+    import gymnasium as gym
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    from sb3_mtte.envs.wrappers import OneHotTaskWrapper
+
+    gravities = (9.8, 5.0)
+    env = DummyVecEnv(
+        [lambda i=i, g=g: OneHotTaskWrapper(gym.make("Pendulum-v1", g=g), i, 2) for i, g in enumerate(gravities)]
+    )
+    with pytest.warns(UserWarning) as warned:
+        result = evaluate_success(_ZeroActions(), env, episodes_per_task=2)
+    said = [str(w.message) for w in warned if "is_success" in str(w.message)]
+    assert said == [
+        "Tasks 0, 1 report no is_success at the end of their episodes: their success counts as 0. Wrap such an env "
+        "so that its info holds is_success (OneHotTaskWrapper's success_key names the info key)."
+    ]
+    assert list(result.as_dict()["per_task"]) == ["Pendulum-v1 (task 0)", "Pendulum-v1 (task 1)"]
+    env.close()

@@ -335,3 +335,17 @@ def test_same_seed_same_run():
     c = MTSACTE("MlpPolicy", make_mt_env("toy-conflict", seed=0), **small_model_kwargs(seed=1))
     c.learn(300)
     assert any(not th.equal(v, all_parameters(c)[k]) for k, v in all_parameters(a).items())
+
+
+def test_update_representation_runs_on_a_freshly_loaded_model(tmp_path, toy_env):
+    """Without a learn since loading there is no logger: the update runs and sets mu, C_s and w all the same."""
+    model = MTSACTE("MlpPolicy", toy_env, **small_model_kwargs())
+    model.learn(200)
+    model.save(tmp_path / "model.zip")
+    model.save_replay_buffer(tmp_path / "buffer.pkl")
+    loaded = MTSACTE.load(tmp_path / "model.zip", env=toy_env)
+    loaded.load_replay_buffer(tmp_path / "buffer.pkl")
+    loaded.mu.fill_(-1)
+    loaded.update_representation()  # the model's batch_size
+    assert loaded.mu.min() >= 0 and loaded.selected_tasks.any()
+    assert float(loaded.task_weights.sum()) == pytest.approx(1.0)

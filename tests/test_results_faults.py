@@ -14,6 +14,7 @@ import pytest
 from test_compare import hand_run
 from test_plot_runs import BUDGET, TASKS, table_rows, write_critic_log, write_nt_log, write_run
 
+from sb3_mtte.common.utils import task_log_key
 from sb3_mtte.experiments.results import compare, figures, plot, records, summary_figures
 from sb3_mtte.experiments.results.bellman_table import bellman_table
 from sb3_mtte.experiments.results.compare import Comparison, comparison_report, comparison_summary, mean_difference
@@ -143,6 +144,35 @@ def test_compare_leaves_out_a_stopped_run_unless_asked(tmp_path, capsys):
     report = compare.main([*argv, "--include-unfinished"])
     assert "| all seeds | 3 (1 unfinished) | 2 | 46.7 / 35.0 |" in report
     assert "| all seeds | Ours | 3 (1 unfinished) |" in report
+
+
+def test_compare_and_plot_count_the_same_runs_by_one_rule(tmp_path, capsys):
+    """A finished run not yet evaluated counts at its last periodic evaluation in both; a run with no evaluation at
+    all is named, with the command that evaluates it, and counted in neither (not at its training episodes)."""
+    root = tmp_path / "runs"
+    for seed, (ours, sac) in enumerate([(0.6, 0.3), (0.8, 0.4)]):
+        labelled_run(root, "mtsacte", "Ours", seed, ours)
+        labelled_run(root, "mtsac_mt", "SAC-MT", seed, sac)
+    not_evaluated = labelled_run(root, "mtsacte", "Ours", 2, 0.5)
+    (not_evaluated / "success.json").unlink()  # its evaluations stay: the last one at 50%
+    no_evaluation = labelled_run(root, "mtsac_mt", "SAC-MT", 3, 0.0)
+    (no_evaluation / "success.json").unlink()
+    (no_evaluation / "evaluations.npz").unlink()
+    keys = [task_log_key("rollout/success", i, name) for i, name in enumerate(TASKS)]  # stochastic training episodes
+    (no_evaluation / "progress.csv").write_text(f"time/total_timesteps,{','.join(keys)}\n800,0.062,0.062,0.062,0.062\n")
+    left_out = (
+        f"{no_evaluation} (toy-conflict, SAC-MT, seed 3) has no evaluation to score; evaluate its model with "
+        "sb3-mtte evaluate"
+    )
+    report = compare.main([str(root), "--benchmark", "toy-conflict", "--reps", "10"])
+    assert capsys.readouterr().err.strip().splitlines() == [f"Left out of the comparison: {left_out}"]
+    assert "| all seeds | 3 | 2 | 63.3 / 35.0 |" in report
+    assert "Counted at their last periodic evaluation, having no final one: Ours seed 2." in report
+    plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10"])
+    assert f"Left out of Table 1: {left_out}" in capsys.readouterr().err.splitlines()
+    rows = table_rows(tmp_path / "figures" / "table1_toy-conflict.md")
+    assert (rows["Ours"][1], rows["SAC-MT"][1]) == ("3", "2")
+    assert rows["SAC-MT"][2].startswith("35.0 [")  # seed 3's training episodes (6.2%) are not a final success
 
 
 # ================================================================================================= no variance

@@ -19,14 +19,6 @@ from torch.func import functional_call, grad, vmap
 GRADIENT_SURGERY_METHODS = ("pcgrad", "cagrad")
 
 
-def check_gradient_surgery(method: str | None, cagrad_c: float) -> None:
-    """:raises ValueError: for an unknown method, or a CAGrad c outside (0, 1)."""
-    if method is not None and method not in GRADIENT_SURGERY_METHODS:
-        raise ValueError(f"gradient_surgery must be None or one of {GRADIENT_SURGERY_METHODS}, got {method!r}.")
-    if not (isinstance(cagrad_c, (int, float)) and 0.0 < cagrad_c < 1.0):
-        raise ValueError(f"cagrad_c must be a number in (0, 1), got {cagrad_c!r}.")
-
-
 # ------------------------------------------------------------------------------------------------------ PCGrad
 def pcgrad_orders(n_tasks: int, generator: th.Generator | None = None) -> np.ndarray:
     """A random order of the other tasks for every task (Algorithm 1: "for g_j in G \\ g_i in random order").

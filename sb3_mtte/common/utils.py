@@ -3,10 +3,9 @@
 from __future__ import annotations
 
 import difflib
-import math
 import sys
 from collections.abc import Iterable
-from numbers import Integral, Real
+from numbers import Integral
 from typing import Any
 
 import gymnasium as gym
@@ -25,9 +24,15 @@ def env_fix(n_envs: int, min_tasks: int = 1) -> str:
 
 
 def nearest_names(name: str, names: Iterable[str], n: int = 1, cutoff: float = 0.6) -> list[str]:
-    """The ``n`` names of ``names`` nearest to a misspelled ``name`` (difflib's ratio at least ``cutoff``), nearest
-    first: what every "did you mean" of the package names."""
-    return difflib.get_close_matches(name, list(names), n=n, cutoff=cutoff)
+    """The ``n`` names of ``names`` nearest to a misspelled ``name``, nearest first: what every "did you mean" of the
+    package names. A name equal but for case comes first (``mtsacTE``: ``mtsacte``), then difflib's nearest with a
+    ratio of at least ``cutoff``."""
+    names = list(names)
+    same = [candidate for candidate in names if candidate.lower() == name.lower()]
+    lowered = [candidate.lower() for candidate in names]
+    close = difflib.get_close_matches(name.lower(), lowered, n=max(len(names), 1), cutoff=cutoff)
+    by_lower = {candidate.lower(): candidate for candidate in reversed(names)}
+    return list(dict.fromkeys([*same, *(by_lower[lower] for lower in close)]))[:n]
 
 
 def did_you_mean(name: str, names: Iterable[str]) -> str:
@@ -132,24 +137,6 @@ def check_positive_int(name: str, value: Any, example: str) -> None:
     """:raises ValueError: unless ``value`` is a positive int; ``name`` says what it counts, ``example`` a value."""
     if isinstance(value, bool) or not isinstance(value, Integral) or value < 1:
         raise ValueError(f"{name} must be a positive int such as {example}, got {value!r}.")
-
-
-def check_batch_size(batch_size: Any) -> None:
-    """:raises ValueError: unless ``batch_size`` (L, transitions per task in a mini-batch) is a positive int."""
-    check_positive_int("batch_size (L, transitions per task in every mini-batch)", batch_size, "128")
-
-
-def check_buffer_size(buffer_size: Any) -> None:
-    """:raises ValueError: unless ``buffer_size`` (transitions over all tasks) is a positive int (not ``1e6``)."""
-    check_positive_int("buffer_size (transitions over all tasks)", buffer_size, "1_000_000 or int(1e6)")
-
-
-def check_learning_rate(learning_rate: Any) -> None:
-    """:raises ValueError: unless ``learning_rate`` is a schedule or a positive finite number."""
-    if callable(learning_rate):
-        return
-    if isinstance(learning_rate, bool) or not isinstance(learning_rate, Real) or not 0 < learning_rate < math.inf:
-        raise ValueError(f"learning_rate must be a positive number such as 3e-4 or a schedule, got {learning_rate!r}.")
 
 
 def caller_stacklevel() -> int:

@@ -23,6 +23,7 @@ Usage::
     sb3-mtte plot docs/records --out docs/figures          # from records (and/or run folders)
     sb3-mtte compare docs/records --benchmark MT10-100k    # two algorithms, as fixed before the runs
     sb3-mtte sweep --algos mtsacte mtsac_mt --envs MT10 --seeds 0 1 --out runs/
+    sb3-mtte --version
 
 ``sb3-mtte <command> --help`` describes a command's options. Ctrl-C ends any command with one line and exit status
 130; output paths and devices are checked before any work starts.
@@ -39,6 +40,7 @@ writes one video per task (``--tile``: also all tasks side by side).
 
 from __future__ import annotations
 
+import argparse
 import contextlib
 import contextvars
 import difflib
@@ -82,6 +84,13 @@ def program_name() -> str:
         return called_as
     argv0 = Path(sys.argv[0]) if sys.argv and sys.argv[0] else Path()
     return MODULE_FORM if (argv0.name, argv0.parent.name) == ("__main__.py", "sb3_mtte") else CONSOLE_SCRIPT
+
+
+class CommandParser(argparse.ArgumentParser):
+    """A command's parser whose errors are one line, without the usage block (``--help`` shows it)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message}\n")
 
 
 def command_prog(command: str) -> str:
@@ -222,6 +231,11 @@ def run_command(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, 
 
 
 def _dispatch(commands: dict[str, Callable[[Sequence[str]], Any]], prog: str, argv: list[str]) -> Any:
+    if argv[:1] in (["--version"], ["-V"]):
+        from sb3_mtte.version import __version__
+
+        print(f"sb3-mtte {__version__}")
+        return __version__
     if argv and argv[0] not in commands and argv[0] not in ("-h", "--help"):
         print(unknown_command_message(prog, argv[0], list(commands)), file=sys.stderr)
         raise SystemExit(2)

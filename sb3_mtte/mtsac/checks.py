@@ -8,6 +8,7 @@ argument and its valid values, or the nearest valid name. MTSACTE's table extend
 
 from __future__ import annotations
 
+import inspect
 import math
 import os
 from collections.abc import Callable, Mapping
@@ -139,6 +140,39 @@ def _replay_buffer_class_in_range(value: Any) -> bool:
     return value is None or issubclass(value, ReplayBuffer)
 
 
+def _positive_int(value: Any) -> bool:
+    return isinstance(value, Integral) and not isinstance(value, bool) and value >= 1
+
+
+def _widths(value: Any) -> bool:
+    return isinstance(value, (list, tuple)) and all(_positive_int(width) for width in value)
+
+
+def policy_kwargs_in_range(value: Any) -> bool:
+    """Whether ``policy_kwargs`` gives positive widths in ``net_arch`` (a list, or a dict of lists by network) and a
+    positive ``z_dim``, where it gives them."""
+    if value is None:
+        return True
+    arch, z_dim = value.get("net_arch"), value.get("z_dim")
+    arch_ok = arch is None or _widths(arch) or (isinstance(arch, Mapping) and all(map(_widths, arch.values())))
+    return arch_ok and (z_dim is None or _positive_int(z_dim))
+
+
+POLICY_KWARGS_RULE = (
+    "policy_kwargs must be a dict or None, its net_arch positive widths such as [400, 400] "
+    "(or a dict of them by network), its z_dim a positive int"
+)
+
+
+def check_buffer_holds_a_batch(buffer_size: int, batch_size: int, n_tasks: int) -> None:
+    """:raises ValueError: unless every task's share of the buffer holds one batch of L = ``batch_size``."""
+    if buffer_size // n_tasks < batch_size:
+        raise ValueError(
+            f"buffer_size={buffer_size} holds {buffer_size // n_tasks} transitions per task, fewer than one batch "
+            f"(batch_size={batch_size} per task): give buffer_size >= N * batch_size = {n_tasks * batch_size}."
+        )
+
+
 MTSAC_ARGUMENTS: dict[str, ArgumentSpec] = {
     "learning_rate": ArgumentSpec(
         "learning_rate must be a positive number such as 3e-4 or a schedule", (Real, Callable), _positive_or_schedule
@@ -191,7 +225,9 @@ MTSAC_ARGUMENTS: dict[str, ArgumentSpec] = {
     "replay_buffer_kwargs": instance("replay_buffer_kwargs must be a dict or None", Mapping),
     "stats_window_size": integer("stats_window_size (episodes) must be a positive int", 1),
     "tensorboard_log": instance("tensorboard_log must be a folder (a str or path) or None", str, os.PathLike),
-    "policy_kwargs": instance("policy_kwargs must be a dict or None", Mapping),
+    "policy_kwargs": ArgumentSpec(
+        POLICY_KWARGS_RULE, (Mapping, NONE), policy_kwargs_in_range, type_rule="policy_kwargs must be a dict or None"
+    ),
     "verbose": integer("verbose must be 0, 1 or 2", 0, 2),
     "seed": integer("seed must be None or an int in [0, 2**32)", 0, 2**32 - 1, optional=True),
     "device": ArgumentSpec(
@@ -239,7 +275,8 @@ def check_arguments(algorithm: type, arguments: Mapping[str, Any], n_tasks: int 
     """Check ``arguments`` against the policies of ``algorithm`` and its table (``algorithm.argument_specs``).
 
     Only the arguments of the table that ``arguments`` holds are checked: a constructor passes its ``locals()``,
-    the command line its hyperparameters. With ``n_tasks``, the checks against the task count N run too.
+    the command line its hyperparameters. With ``n_tasks``, the checks against the task count N run too, the
+    buffer's room for one batch per task among them (the class's defaults standing in for what is not given).
 
     :param algorithm: the class, :class:`~sb3_mtte.MTSAC` or :class:`~sb3_mtte.MTSACTE`.
     :param arguments: the arguments by name.
@@ -255,3 +292,7 @@ def check_arguments(algorithm: type, arguments: Mapping[str, Any], n_tasks: int 
             check_argument(name, arguments[name], spec)
             if spec.task_check is not None and n_tasks is not None:
                 spec.task_check(arguments[name], n_tasks)
+    if n_tasks is not None:
+        defaults = inspect.signature(algorithm.__init__).parameters
+        sizes = [arguments.get(name, defaults[name].default) for name in ("buffer_size", "batch_size")]
+        check_buffer_holds_a_batch(*sizes, n_tasks)

@@ -25,7 +25,7 @@ from sb3_mtte.common.multitask_algorithm import MultiTaskOffPolicyAlgorithm
 from sb3_mtte.common.update_hooks import GradientSurgery, UpdateHook, UpdateHooks
 from sb3_mtte.common.update_monitor import Stats, UpdateMonitor
 from sb3_mtte.common.utils import caller_stacklevel, check_not_gymnasium_vector_env, polyak_update
-from sb3_mtte.mtsac.checks import MTSAC_ARGUMENTS, ArgumentSpec, check_arguments
+from sb3_mtte.mtsac.checks import MTSAC_ARGUMENTS, ArgumentSpec, check_arguments, check_buffer_holds_a_batch
 from sb3_mtte.mtsac.moore import MOOREPolicy
 from sb3_mtte.mtsac.paco import PaCoPolicy
 from sb3_mtte.mtsac.policies import IndependentPolicy, MTSACPolicy, MultiHeadPolicy, SoftModularPolicy
@@ -166,6 +166,8 @@ class MTSAC(MultiTaskOffPolicyAlgorithm):
         )
         self.algorithm_name = type(self).__name__
         self._setup_tasks()
+        if self.env is not None:
+            check_buffer_holds_a_batch(buffer_size, batch_size, self.n_tasks)
         self.critic_arch, self.ent_coef_arch, self.q_loss_clip = critic_arch, ent_coef_arch, q_loss_clip
         self.gradient_surgery, self.cagrad_c, self.update_path = gradient_surgery, cagrad_c, update_path
         self.overlap_env_step = overlap_env_step

@@ -7,7 +7,17 @@ from collections.abc import Mapping
 from numbers import Integral
 from typing import Any
 
-from sb3_mtte.mtsac.checks import MTSAC_ARGUMENTS, NONE, ArgumentSpec, choice, flag, integer, number
+from sb3_mtte.mtsac.checks import (
+    MTSAC_ARGUMENTS,
+    NONE,
+    POLICY_KWARGS_RULE,
+    ArgumentSpec,
+    choice,
+    flag,
+    integer,
+    number,
+    policy_kwargs_in_range,
+)
 from sb3_mtte.mtsacte.transfer import ESTIMATORS
 
 NT_MEASURES = ("per_batch", "mean", "significant")
@@ -43,10 +53,10 @@ MTSACTE_ARGUMENTS: dict[str, ArgumentSpec] = {
         lambda value: value == "per_task",
     ),
     "policy_kwargs": ArgumentSpec(
-        "policy_kwargs must not hold rep_learning_rate: rep_learning_rate is an argument of MTSACTE, as in "
+        f"{POLICY_KWARGS_RULE}; it must not hold rep_learning_rate, an argument of MTSACTE as in "
         "MTSACTE(..., rep_learning_rate=1e-3)",
         (Mapping, NONE),
-        lambda value: value is None or "rep_learning_rate" not in value,
+        lambda value: policy_kwargs_in_range(value) and (value is None or "rep_learning_rate" not in value),
         type_rule="policy_kwargs must be a dict or None",
     ),
     "n_select": ArgumentSpec(

@@ -245,8 +245,10 @@ class MTSACTE(MTSAC):
         data = buffer.sample_top_k(batch_size) if self.use_topk else buffer.sample(batch_size)  # type: ignore[union-attr]
         return RepresentationBatch.draw(data.observations, self.policy.z_dim, self.policy.action_dim)
 
-    def update_representation(self, batch_size: int) -> None:
-        """``rep_gradient_steps`` updates of phi and the decoder by J^rep (Alg. 1), each recomputing mu, C_s, w."""
+    def update_representation(self, batch_size: int | None = None) -> None:
+        """``rep_gradient_steps`` updates of phi and the decoder by J^rep (Alg. 1), each recomputing mu, C_s, w, on
+        batches of ``batch_size`` per task (the model's ``batch_size`` when None)."""
+        batch_size = self.batch_size if batch_size is None else batch_size
         self.policy.set_training_mode(True)
         losses, statistics = [], TransferStatistics()
         for _ in range(self.rep_gradient_steps):
@@ -275,6 +277,8 @@ class MTSACTE(MTSAC):
         self.task_probe_accuracy = task_probe_accuracy(z)
         self.task_probe_accuracy_of_mean = task_probe_accuracy(z_mean)
         self.z_std = float(z_log_std.exp().mean())
+        if getattr(self, "_logger", None) is None:
+            return  # no learn yet (a model just built or loaded): no logger to record to
         if losses:
             self.logger.record("train/rep_loss", float(th.stack(losses).mean()))
         self._log_negative_transfer()
@@ -321,7 +325,7 @@ class MTSACTE(MTSAC):
             name = self._task_name(i)
             self.logger.record(task_log_key("nt/mu", i, name), int(mu[i]))
             self.logger.record(task_log_key("nt/weight", i, name), float(weights[i]))
-        if self._logger is not None and self.logger.get_dir():
+        if self.logger.get_dir():
             record = {
                 "timesteps": self.num_timesteps,
                 "mu": mu.tolist(),

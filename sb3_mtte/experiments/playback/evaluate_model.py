@@ -20,7 +20,6 @@ benchmark (never read as the run's final).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import os
@@ -37,7 +36,7 @@ from sb3_mtte.common.checkpoints import read_checkpoint_data
 from sb3_mtte.evaluation import SuccessResult, evaluate_success
 from sb3_mtte.envs import MT50_TASKS, reward_function_version
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.cli import command_prog, device_error, output_file_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, device_error, output_file_error
 from sb3_mtte.experiments.env_ids import benchmark_task_names, env_id_of_tasks, split_env_id
 from sb3_mtte.experiments.zoo.run_checkpoints import load_model
 
@@ -266,7 +265,7 @@ def _load_model_of_run(model_path: Path, info: dict[str, Any] | None, device: st
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """``sb3-mtte evaluate MODEL [--env ENV] [--episodes 50] [--seed S] [--device D] [--out PATH]``"""
-    parser = argparse.ArgumentParser(prog=command_prog("evaluate"), description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog=command_prog("evaluate"), description=__doc__.split("\n\n")[0])
     parser.add_argument("model", help="model zip (MTSAC or MTSACTE)")
     parser.add_argument("--env", default=None, help="benchmark or env id (default: the run's)")
     parser.add_argument("--episodes", type=int, default=50, help="episodes per task (default 50)")

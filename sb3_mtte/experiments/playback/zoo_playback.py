@@ -15,7 +15,7 @@ from rl_zoo3.utils import get_model_path
 
 from sb3_mtte.envs import check_env_kwargs, make_env_fns, make_mt_env
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.cli import command_prog, device_error, output_folder_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, device_error, output_folder_error
 from sb3_mtte.experiments.env_ids import (
     MultiTaskVecEnvFactory,
     benchmark_help,
@@ -74,7 +74,7 @@ def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
 
 def _model_parser(prog: str) -> argparse.ArgumentParser:
     """The options that name a trained model (rl-zoo's names)."""
-    parser = argparse.ArgumentParser(prog=prog, add_help=False)
+    parser = CommandParser(prog=prog, add_help=False)
     parser.add_argument("--env", required=True, help="env id of the run (MT10, MT10-smoke, toy-conflict, ...)")
     parser.add_argument("-f", "--folder", default="logs", help="log folder")
     parser.add_argument("--algo", default="mtsacte", help="zoo algorithm key")
@@ -144,7 +144,7 @@ def _run_zoo_enjoy(argv: list[str], factory: MultiTaskVecEnvFactory) -> None:
 
 def _record_video_parser() -> argparse.ArgumentParser:
     prog = command_prog("record_video")
-    parser = argparse.ArgumentParser(prog=prog, parents=[_model_parser("record_video")])
+    parser = CommandParser(prog=prog, parents=[_model_parser("record_video")])
     parser.add_argument("-o", "--output-folder", default=None, help="video folder (default: <run>/videos)")
     parser.add_argument("-n", "--n-timesteps", type=int, default=None, help="max steps per video (default: as needed)")
     parser.add_argument("--episodes", type=int, default=1, help="episodes recorded per task (default 1)")

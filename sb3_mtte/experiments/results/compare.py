@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 from scipy import stats
 
-from sb3_mtte.experiments.cli import command_prog, output_file_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, output_file_error
 from sb3_mtte.experiments.results.bellman_table import window_names
 from sb3_mtte.experiments.results.figures import safe_name
 from sb3_mtte.experiments.results.records import load_runs
@@ -49,6 +49,7 @@ from sb3_mtte.experiments.results.statistics import (
     final_task_scores,
     has_final_evaluation,
     improvement_probabilities,
+    leave_out_unevaluated,
     leave_out_unfinished,
     unfinished,
 )
@@ -135,7 +136,7 @@ def _reading_sentence(a: list[Run], b: list[Run], diff: MeanDifference | None, c
 
 
 def _finished(runs: Sequence[Run], seeds: Sequence[int] | None) -> list[Run]:
-    chosen = [run for run in runs if has_final_evaluation(run) and (seeds is None or run.seed in seeds)]
+    chosen = [run for run in runs if final_task_scores(run) is not None and (seeds is None or run.seed in seeds)]
     return sorted(chosen, key=lambda run: -1 if run.seed is None else run.seed)
 
 
@@ -241,11 +242,15 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
     diffs = {name: _difference(*pair) for name, pair in chosen.items()}
     replication = _replication_name(cmp)
     reading = [_reading_sentence(*chosen[replication], diffs[replication], cmp)] if replication in chosen else []
+    interim = sorted({f"{run.label} seed {run.seed}" for pair in chosen.values() for runs in pair for run in runs
+                      if not has_final_evaluation(run)})  # fmt: skip
+    interim_line = f"Counted at their last periodic evaluation, having no final one: {', '.join(interim)}."
     lines = [
         f"{bench}: {cmp.a} against {cmp.b}, the final success (mean over tasks of each run's final evaluation). "
         f"Difference: the mean over runs of {cmp.a} minus that of {cmp.b}, 95% percentile bootstrap over runs "
         f"within each algorithm ({DIFFERENCE_REPS:,} resamples, seed 0); Welch's t with its degrees of freedom and "
         "two-sided p.",
+        *(["", interim_line] if interim else []),
         "",
         f"| Seeds | n {cmp.a} | n {cmp.b} | Means (%) | Difference (points) | Welch t (df) | p |",
         "|:--|--:|--:|--:|--:|--:|--:|",
@@ -282,7 +287,7 @@ def comparison_report(bench: str, runs: Sequence[Run], cmp: Comparison, reps: in
 
 
 def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog=command_prog("compare"),
         description="Two algorithms of one benchmark compared as fixed before the runs: the difference of mean final "
         "success with a bootstrap interval and Welch's t, rliable's aggregates, and the runs whose soft Bellman "
@@ -331,6 +336,7 @@ def main(argv: Sequence[str] | None = None) -> str:
     runs = load_runs(args.sources)
     bench_runs = [run for run in runs if args.benchmark in group_runs([run])]
     runs = leave_out_unfinished(bench_runs, args.include_unfinished, scope="the comparison")
+    runs = leave_out_unevaluated(runs, scope="the comparison")
     labels = group_runs(runs).get(args.benchmark, {})
     absent = [label for label in (cmp.a, cmp.b) if label not in labels]
     if absent:

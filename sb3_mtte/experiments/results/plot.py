@@ -44,7 +44,6 @@ episodes (``rollout/``). Times are env steps per task (``--x total`` for steps o
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import warnings
@@ -52,7 +51,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from sb3_mtte.common.utils import short_task_name
-from sb3_mtte.experiments.cli import command_prog, output_folder_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, output_folder_error
 from sb3_mtte.experiments.results.bellman_table import bellman_table
 from sb3_mtte.experiments.results.compare import PREREGISTERED, comparison_report, comparison_summary
 from sb3_mtte.experiments.results.figures import PlotOptions, plot_bellman, plot_negative_transfer, safe_name
@@ -62,6 +61,7 @@ from sb3_mtte.experiments.results.statistics import (
     DEFAULT_REPS,
     DEFAULT_SEED,
     has_final_evaluation,
+    leave_out_unevaluated,
     leave_out_unfinished,
 )
 from sb3_mtte.experiments.results.summary_figures import curve_bands, plot_per_task, plot_profile, plot_success
@@ -109,6 +109,7 @@ def make_plots(sources: Sequence[str | Path], opts: PlotOptions) -> list[Path]:
     kept = leave_out_unfinished(runs, opts.include_unfinished)
     if not kept:
         raise PlotInputError(_nothing_finished(runs))
+    leave_out_unevaluated(kept, scope="Table 1")  # named here; their curves are still drawn
     opts.out.mkdir(parents=True, exist_ok=True)
     written: list[Path] = WrittenFiles()
     groups = sorted(group_runs(kept).items())
@@ -190,7 +191,7 @@ def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
     """``sb3-mtte plot SOURCE [SOURCE ...] [--out DIR] ...``"""
-    parser = argparse.ArgumentParser(prog=command_prog("plot"), description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog=command_prog("plot"), description=__doc__.split("\n\n")[0])
     parser.add_argument("sources", nargs="+", help="folders holding run folders (run_info.json) and/or records")
     parser.add_argument("--out", default=None, help="output folder (default: the first SOURCE, beside the runs)")
     parser.add_argument("--reps", type=int, default=DEFAULT_REPS, help=f"bootstrap resamples (default {DEFAULT_REPS})")
@@ -206,7 +207,7 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
         help="times of the heatmaps (x units; each draws the nearest recomputation; default: first, middle, last)",
     )
     parser.add_argument("--freq-window-episodes", type=int, default=20, help="train-frequency window (episodes)")
-    parser.add_argument("--dpi", type=int, default=120)
+    parser.add_argument("--dpi", type=int, default=120, help="resolution of the PNG figures (default 120)")
     parser.add_argument(
         "--include-unfinished",
         action="store_true",
@@ -234,6 +235,10 @@ def main(argv: Sequence[str] | None = None) -> list[Path]:
     )
     if args.reps < 1:
         parser.error("--reps must be at least 1")
+    counts = {"--dpi": args.dpi, "--smooth": args.smooth, "--freq-window-episodes": args.freq_window_episodes}
+    for flag, value in counts.items():
+        if value < 1:
+            parser.error(f"{flag} {value}: give a positive int" + (" (1: no smoothing)" if flag == "--smooth" else ""))
     missing = [source for source in args.sources if not Path(source).is_dir()]
     problem = output_folder_error("--out", opts.out)
     if opts.results_dir is not None:

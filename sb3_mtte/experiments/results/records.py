@@ -41,7 +41,6 @@ whose mu was counted in float64, ``<env id>-gpu/`` for runs trained on CUDA; the
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections.abc import Sequence
@@ -51,7 +50,7 @@ from typing import Any
 import numpy as np
 
 from sb3_mtte.common.utils import task_log_key
-from sb3_mtte.experiments.cli import command_prog, output_folder_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, output_folder_error
 from sb3_mtte.experiments.results.figures import safe_name
 from sb3_mtte.experiments.results.metrics import distance_from_uniform, harmful_fraction, transfer_coupling
 from sb3_mtte.experiments.results.runs import (
@@ -318,7 +317,7 @@ def load_runs(sources: Sequence[str | Path]) -> list[Run]:
 
 
 def main(argv: Sequence[str] | None = None) -> list[Path]:
-    parser = argparse.ArgumentParser(prog=command_prog("record"), description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog=command_prog("record"), description=__doc__.split("\n\n")[0])
     parser.add_argument("runs_dir", help="folder holding run folders (found by their run_info.json)")
     parser.add_argument(
         "--out",

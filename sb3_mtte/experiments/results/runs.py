@@ -254,21 +254,22 @@ def table_order(groups: dict[str, list[Run]]) -> list[Run]:
     ]
 
 
-def success_curve(run: Run, task: int | None = None) -> Series | None:
-    """Success over time (mean over tasks, or of task ``task``): evaluations, else eval/ scalars, else rollout/."""
+def success_curve(run: Run, task: int | None = None, training_episodes: bool = True) -> Series | None:
+    """Success over time (mean over tasks, or of task ``task``): evaluations, else eval/ scalars, else (with
+    ``training_episodes``) the stochastic training episodes' rollout/ scalars."""
     if run.evaluations is not None and len(run.evaluations.get("timesteps", [])):
         rates = np.asarray(run.evaluations["success_rate"], dtype=float)
         values = rates.mean(axis=1) if task is None else rates[:, task]
         return np.asarray(run.evaluations["timesteps"], dtype=float), values
-    for prefix in ("eval", "rollout"):
+    for prefix in ("eval", "rollout") if training_episodes else ("eval",):
         if task is None:
             series = run.scalar(f"{prefix}/success_rate")
         else:
             series = run.scalar(task_log_key(f"{prefix}/success", task, run.task_names[task]))
         if series is not None:
             return series
-    if task is None:  # mean of the per-task rollout curves
-        curves = [success_curve(run, i) for i in range(run.n_tasks)]
+    if task is None:  # mean of the per-task curves
+        curves = [success_curve(run, i, training_episodes) for i in range(run.n_tasks)]
         if all(c is not None for c in curves) and curves:
             return mean_std([c for c in curves if c is not None])[:2]
     return None

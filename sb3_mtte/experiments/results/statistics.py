@@ -204,17 +204,32 @@ def leave_out_unfinished(
 
 def final_task_scores(run: Run) -> np.ndarray | None:
     """A run's final success per task: its final evaluation (``success.json``), else the last point of each task's
-    success curve; None when a task has neither."""
+    periodic evaluations; None when a task has neither (the training episodes' success never stands in)."""
     if has_final_evaluation(run):
         per_task = (run.final or {})["per_task"]
         return np.array([float(per_task[name]) for name in run.task_names])
     scores = []
     for task in range(run.n_tasks):
-        curve = success_curve(run, task)
+        curve = success_curve(run, task, training_episodes=False)
         if curve is None or not len(curve[1]):
             return None
         scores.append(float(curve[1][-1]))
     return np.array(scores)
+
+
+def leave_out_unevaluated(runs: Sequence[Run], scope: str) -> list[Run]:
+    """``runs`` but those without an evaluation to score (:func:`final_task_scores`), each named in one line on
+    stderr with the command that evaluates it. Table 1 and the comparison count runs by this rule."""
+    kept = []
+    for run in runs:
+        if final_task_scores(run) is not None:
+            kept.append(run)
+            continue
+        model = run.path / f"{run.benchmark}.zip"
+        fix = f"sb3-mtte evaluate {model}" if model.is_file() else "evaluate its model with sb3-mtte evaluate"
+        who = f"{run.path} ({run.benchmark}, {run.label}, seed {run.seed})"
+        print(f"Left out of {scope}: {who} has no evaluation to score; {fix}", file=sys.stderr)
+    return kept
 
 
 def score_matrix(runs: Sequence[Run]) -> np.ndarray | None:
@@ -233,6 +248,7 @@ __all__ = [
     "final_task_scores",
     "has_final_evaluation",
     "improvement_probabilities",
+    "leave_out_unevaluated",
     "leave_out_unfinished",
     "performance_profiles",
     "run_budget",

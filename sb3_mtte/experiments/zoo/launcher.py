@@ -20,7 +20,7 @@ from rl_zoo3 import hyperparams_opt
 
 from sb3_mtte.common.utils import did_you_mean
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.cli import command_prog, device_error, output_folder_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, device_error, output_folder_error
 from sb3_mtte.experiments.env_ids import benchmark_help, default_vec_env, env_id_n_tasks, register_env_id
 from sb3_mtte.experiments.variants import algo_classes, convert_trial_params, family_of
 from sb3_mtte.experiments.zoo import adapter
@@ -67,7 +67,7 @@ def latest_run_dir(log_folder: str, algo: str, env_id: str) -> Path:
 
 
 def _launcher_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="sb3-mtte train", add_help=False)
+    parser = CommandParser(prog="sb3-mtte train", add_help=False)
     add_launcher_options(parser)
     return parser
 

@@ -11,6 +11,7 @@ import argparse
 import contextlib
 import copy
 import os
+import re
 from collections import OrderedDict, deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -145,6 +146,12 @@ class MultiTaskExperimentManager(RunFolderSettings, ZooExperimentManager):
     def _check_arguments(self, hyperparams: dict[str, Any]) -> None:
         """The constructor's type and range checks (one table per class) on the hyperparameters as rl-zoo will pass
         them, before any folder exists."""
+        rate = hyperparams.get("learning_rate")
+        if isinstance(rate, str) and not re.fullmatch(r"lin_[0-9.eE+-]+", rate):  # rl-zoo's one schedule string
+            raise ValueError(
+                f"learning_rate must be a positive number such as 3e-4, or 'lin_<initial>' for rl-zoo's linear "
+                f"schedule, got learning_rate={rate!r}."
+            )
         verbose, self.verbose = self.verbose, 0  # the dry pass prints nothing
         try:
             processed = self.preprocess_hyperparams(copy.deepcopy(dict(hyperparams)))[0]

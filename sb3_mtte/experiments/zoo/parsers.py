@@ -11,6 +11,7 @@ from typing import Any
 
 from rl_zoo3.utils import StoreDict
 
+from sb3_mtte.experiments.cli import CommandParser
 from sb3_mtte.experiments.env_ids import benchmark_help
 from sb3_mtte.experiments.variants import algo_classes
 
@@ -27,6 +28,39 @@ PROGRESS_HELP = "display a progress bar with tqdm and rich (on by default: --no-
 TRAIN_STEPS_HELP = "env steps over all tasks (enjoy's -n counts vector steps, one step of every task)"
 
 
+def non_negative_int(text: str) -> int:
+    """An option's int of 0 or more (a run folder's id, a count of files kept)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{value} is negative: give 0 or more")
+    return value
+
+
+def threads(text: str) -> int:
+    """rl-zoo's ``--num-threads``: a positive int, or -1 for PyTorch's default."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+    if value < 1 and value != -1:
+        raise argparse.ArgumentTypeError(f"{value} threads: give 1 or more, or -1 for PyTorch's default")
+    return value
+
+
+def seed(text: str) -> int:
+    """rl-zoo's ``--seed``: an int from 0 to 2**32 - 1, or -1 for a random one."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+    if not -1 <= value < 2**32:
+        raise argparse.ArgumentTypeError(f"{value} is out of range: give 0 to 2**32 - 1, or -1 for a random seed")
+    return value
+
+
 def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """The options of ``train`` that rl-zoo does not have."""
     parser.add_argument(
@@ -41,7 +75,7 @@ def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
     )
     parser.add_argument(
         "--exp-id",
-        type=int,
+        type=non_negative_int,
         default=None,
         metavar="N",
         help="run folder <env>_N (default: the next free N). If it holds a finished run with the settings given, "
@@ -53,7 +87,11 @@ def add_launcher_options(parser: argparse.ArgumentParser | argparse._ArgumentGro
     )
     parser.add_argument("--no-tensorboard", action="store_true", default=None, help="no tensorboard events")
     parser.add_argument(
-        "--keep-buffers", type=int, default=None, metavar="K", help="replay-buffer checkpoints kept (default 1; 0: all)"
+        "--keep-buffers",
+        type=non_negative_int,
+        default=None,
+        metavar="K",
+        help="replay-buffer checkpoints kept (default 1; 0: all)",
     )
     parser.add_argument(
         "--no-align-checkpoints",
@@ -82,7 +120,7 @@ class CheckedStoreDict(StoreDict):
             raise
 
 
-class ZooParser(argparse.ArgumentParser):
+class ZooParser(CommandParser):
     """rl-zoo's parser with this package's keys as ``--algo`` choices, checked ``key:value`` options and, with
     ``launcher_options``, the launcher's options in a group of the help."""
 
@@ -101,6 +139,10 @@ class ZooParser(argparse.ArgumentParser):
             kwargs["help"] = self.steps_help
         if "--progress" in names:
             kwargs["help"] = PROGRESS_HELP
+        if "--num-threads" in names:
+            kwargs["type"] = threads
+        if "--seed" in names:
+            kwargs["type"] = seed
         if kwargs.get("action") is StoreDict:
             kwargs["action"] = CheckedStoreDict
         return super().add_argument(*names, **kwargs)

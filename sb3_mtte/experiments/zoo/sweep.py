@@ -43,7 +43,7 @@ from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_latest_run_id
 
 from sb3_mtte.experiments import run_info
-from sb3_mtte.experiments.cli import command_prog, output_folder_error
+from sb3_mtte.experiments.cli import CommandParser, command_prog, output_folder_error
 from sb3_mtte.experiments.env_ids import BUDGET_SUFFIXES, benchmark_help, register_env_id
 from sb3_mtte.experiments.variants import algo_classes
 from sb3_mtte.experiments.zoo import launcher
@@ -227,7 +227,7 @@ def main(argv: Sequence[str] | None = None) -> list[dict[str, Any]]:
     if "--" in argv:
         cut = argv.index("--")
         argv, extra = argv[:cut], argv[cut + 1 :]
-    parser = argparse.ArgumentParser(prog=command_prog("sweep"), description=__doc__.split("\n\n")[0])
+    parser = CommandParser(prog=command_prog("sweep"), description=__doc__.split("\n\n")[0])
     parser.add_argument("--algos", nargs="+", required=True, help="zoo algorithm keys (mtsacte, mtsac_mt, ...)")
     parser.add_argument(
         "--envs",
