@@ -203,3 +203,16 @@ def test_a_name_equal_but_for_case_is_suggested_first():
     assert did_you_mean("mtsacTE", ["mtsac", "mtsacte"]) == "did you mean mtsacte?"
     assert did_you_mean("mt10-smoke", ["MT10", "MT10-smoke", "MT20-smoke"]) == "did you mean MT10-smoke?"
     assert ": did you mean MT10-smoke? (its entries: " in missing_entries_message("mtsacte", ["mt10-smoke"])
+
+
+@pytest.mark.parametrize("steps", ["0", "-4"])
+def test_enjoy_refuses_no_step_before_loading_the_model(tmp_path, steps):
+    with pytest.raises(SystemExit) as exit_info:
+        zoo_main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--no-render", "-n", steps])
+    assert exit_info.value.code == f"-n {steps}: give 1 or more vector steps (each steps every task once)."
+
+
+def test_train_refuses_no_evaluation_episode_before_building_the_envs(tmp_path, capsys):
+    command = lambda argv: zoo_main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *argv])  # noqa: E731
+    assert one_line_error(capsys, command, ["--eval-episodes", "0"]) == "argument --eval-episodes: 0: give 1 or more"
+    assert not (tmp_path / "mtsac_mt").exists()

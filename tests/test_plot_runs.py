@@ -200,3 +200,12 @@ def test_the_task_average_bellman_figure_names_the_share_the_clip_dropped(tmp_pa
         "SAC-MT: average over tasks; samples the clip dropped per logging window: mean 0.20%, max 0.50%"
     ]
     assert titles["none"] == ["SAC-MT: average over tasks"]
+
+
+def test_plot_says_when_it_writes_no_results_file(tmp_path, capsys):
+    root = tmp_path / "runs"
+    write_run(root, 0, [0.0, 0.2], None, finished=True, timesteps=BUDGET)  # evaluated in training only
+    plot.main([str(root), "--out", str(tmp_path / "figures"), "--reps", "10"])
+    out = capsys.readouterr().out
+    assert "No results file for toy-conflict: none of its runs has a final evaluation" in out
+    assert not (tmp_path / "figures" / "results_toy-conflict.json").exists()

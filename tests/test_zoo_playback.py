@@ -59,7 +59,9 @@ def test_enjoy_and_resume_pass_over_a_newer_folder_without_a_model(tmp_path, cap
     assert f"Passing over {ENV}_2 (no model): the latest run with one is {run}" in out
     assert "Loading latest experiment, id=1" in out
     main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--resume", "-n", "400", "--no-progress"])
-    assert f"Resuming {run} from" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    resumed = [line for line in out.splitlines() if line.startswith("Resum")]
+    assert resumed == [f"Resuming {run} from scratch: it has no checkpoint"], out
 
 
 @pytest.mark.parametrize("command", ["enjoy", "record_video"])
@@ -209,3 +211,14 @@ def test_a_video_is_written_under_a_temporary_name_and_renamed_when_complete(tmp
         write_video(frames(3, fail=True), tmp_path / "stopped.mp4", fps=10)
     assert write_video(frames(3, fail=False), tmp_path / "whole.mp4", fps=10)
     assert sorted(path.name for path in tmp_path.iterdir()) == ["whole.mp4"]
+
+
+def test_a_truncated_model_ends_enjoy_and_record_video_with_one_line(tmp_path):
+    run = tiny_train(tmp_path, "mtsac_mt", steps=200)
+    model = run / f"{ENV}.zip"
+    model.write_bytes(model.read_bytes()[: model.stat().st_size // 2])
+    for command in (["enjoy", "--no-render", "-n", "5"], ["record_video", "-n", "5"]):
+        with pytest.raises(SystemExit) as exit_info:
+            main([command[0], "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *command[1:]])
+        message = str(exit_info.value.code)
+        assert message.startswith(f"{model} is not a complete SB3 checkpoint (") and "\n" not in message, message

@@ -28,6 +28,18 @@ def read_checkpoint_data(path: str | pathlib.Path | io.BufferedIOBase) -> dict:
     return data
 
 
+def incomplete_checkpoint_error(path) -> str | None:
+    """The one-line error for a file that is not a whole SB3 zip checkpoint (a truncated copy, say), else None."""
+    try:
+        read_checkpoint_data(path)
+    except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError) as error:
+        return (
+            f"{getattr(path, 'name', path)} is not a complete SB3 checkpoint ({error}): it may be truncated; save "
+            "the model again or load another file."
+        )
+    return None
+
+
 def check_checkpoint(path, algorithm_name: str, n_tasks: int | None) -> None:
     """Raise ValueError when ``path`` was saved by another algorithm or for another task count.
 

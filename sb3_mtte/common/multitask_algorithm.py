@@ -4,8 +4,6 @@ that carry the RNG states. The update itself is the subclass's (:class:`sb3_mtte
 from __future__ import annotations
 
 import contextlib
-import json
-import zipfile
 from collections import deque
 from collections.abc import Iterator
 from typing import Any, ClassVar
@@ -20,7 +18,12 @@ from stable_baselines3.common.type_aliases import GymEnv, MaybeCallback, Rollout
 from stable_baselines3.common.vec_env import VecEnv
 
 from sb3_mtte.common.buffers import MultiTaskReplayBuffer
-from sb3_mtte.common.checkpoints import capture_rng_state, check_checkpoint, restore_rng_state
+from sb3_mtte.common.checkpoints import (
+    capture_rng_state,
+    check_checkpoint,
+    incomplete_checkpoint_error,
+    restore_rng_state,
+)
 from sb3_mtte.common.overlapped_rollout import collect_overlapped, learn_overlapped
 from sb3_mtte.common.update_monitor import UpdateMonitor
 from sb3_mtte.common.utils import (
@@ -211,13 +214,10 @@ class MultiTaskOffPolicyAlgorithm(OffPolicyAlgorithm):
         had never stopped (CPU).
         """
         n_tasks = env.num_envs if isinstance(env, VecEnv) else None
-        try:
-            check_checkpoint(path, cls.__name__, n_tasks)
-        except (zipfile.BadZipFile, KeyError, json.JSONDecodeError, UnicodeDecodeError) as error:
-            raise ValueError(
-                f"{getattr(path, 'name', path)} is not a complete SB3 checkpoint ({error}): it may be truncated; save "
-                "the model again or load another file."
-            ) from None
+        problem = incomplete_checkpoint_error(path)
+        if problem is not None:
+            raise ValueError(problem)
+        check_checkpoint(path, cls.__name__, n_tasks)
         model = super().load(path, env=env, device=device, **kwargs)
         rng_state = model.__dict__.pop("rng_state", None)
         if rng_state is not None:

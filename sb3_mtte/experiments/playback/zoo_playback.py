@@ -13,6 +13,7 @@ import yaml
 from huggingface_sb3 import EnvironmentName
 from rl_zoo3.utils import get_model_path
 
+from sb3_mtte.common.checkpoints import incomplete_checkpoint_error
 from sb3_mtte.envs import check_env_kwargs, make_env_fns, make_mt_env
 from sb3_mtte.experiments import run_info
 from sb3_mtte.experiments.cli import CommandParser, command_prog, device_error, output_folder_error
@@ -51,6 +52,14 @@ def locate_model(args: argparse.Namespace) -> tuple[str, str, str]:
     ``args.exp_id`` 0 set to the latest run's id); a missing run or model exits with one line."""
     if args.exp_id == 0:
         args.exp_id = _latest_run_id(args)
+    located = _model_path(args)
+    problem = incomplete_checkpoint_error(located[1])
+    if problem is not None:
+        raise SystemExit(problem)
+    return located
+
+
+def _model_path(args: argparse.Namespace) -> tuple[str, str, str]:
     try:
         return get_model_path(
             args.exp_id,
@@ -103,6 +112,9 @@ def enjoy(argv: Sequence[str]) -> None:
     problem = device_error("--device", flag_value(argv, "--device"))
     if problem:
         raise SystemExit(problem)
+    steps = flag_value(argv, "-n", "--n-timesteps")
+    if steps is not None and not (steps.isdigit() and int(steps) >= 1):
+        raise SystemExit(f"-n {steps}: give 1 or more vector steps (each steps every task once).")
     if not has_flag(argv, "-f", "--folder"):
         argv += ["-f", "logs"]
     n_tasks = env_id_n_tasks(env_id)

@@ -181,6 +181,7 @@ def _write_results(bench: str, runs: list[Run], opts: PlotOptions, written: list
     """The benchmark's results JSON (one record per evaluated run), when some run has a final evaluation."""
     records = results_records(runs)
     if not records:
+        print(f"No results file for {bench}: none of its runs has a final evaluation (sb3-mtte evaluate writes one).")
         return
     results_dir = opts.results_dir or opts.out
     results_dir.mkdir(parents=True, exist_ok=True)

@@ -270,7 +270,10 @@ class MultiTaskExperimentManager(RunFolderSettings, ZooExperimentManager):
             self.checkpoint = final
         step = self.checkpoint.timesteps if self.checkpoint is not None else 0
         self.resume_step = step
-        print(f"Resuming {run_dir} from " + (f"{self.checkpoint.model.name}" if self.checkpoint else "scratch"))
+        if self.checkpoint is None:
+            print(f"Resuming {run_dir} from scratch: it has no checkpoint")
+        else:
+            print(f"Resumed {run_dir} at {step:,} env steps, from {self.checkpoint.model.name}")
         if self.checkpoint is not None:  # before the folder changes: a run without config.yml is left as it was
             unprocessed, saved = self.read_hyperparameters()
         set_aside_monitor_files(run_dir)

@@ -107,7 +107,7 @@ class MultiTaskCheckpointCallback(BaseCallback):
         atomic_save(lambda tmp: Path(tmp).write_text(json.dumps(meta, indent=2) + "\n"), paths["meta"])
         self._prune_buffers()
         if self.verbose >= 1:
-            print(f"Checkpoint at {steps} steps: {paths['model']}")
+            print(f"Saved a checkpoint at {steps:,} env steps: {paths['model']}")
         return Checkpoint(steps, paths["model"], buffer_path, meta)
 
     def _save_files(self, paths: dict[str, Path]) -> Path | None:
