@@ -127,11 +127,14 @@ def test_sweep_without_ray_names_the_extra(tmp_path, capsys, monkeypatch):
     assert message == 'sb3-mtte sweep needs Ray Tune: pip install "sb3-mtte[ray]" (or pip install "ray[tune]").'
 
 
-@pytest.mark.parametrize("flags", [["--episodes", "0"], ["-n", "-1"], ["--width", "0"]])
+@pytest.mark.parametrize(
+    "flags", [["--episodes", "0"], ["-n", "-1"], ["--width", "0"], ["--fps", "0"], ["--fps", "-5"]]
+)
 def test_record_video_refuses_no_episode_or_no_step(tmp_path, flags):
     with pytest.raises(SystemExit) as exit_info:
         zoo_main(["record_video", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *flags])
-    assert exit_info.value.code == f"{' '.join(flags)}: give at least 1 (episodes per task, steps per video, pixels)."
+    expected = "give at least 1 (episodes per task, steps per video, pixels, frames per second)."
+    assert exit_info.value.code == f"{' '.join(flags)}: {expected}"
 
 
 @pytest.mark.parametrize("episodes", [0, 2.5])
@@ -216,3 +219,14 @@ def test_train_refuses_no_evaluation_episode_before_building_the_envs(tmp_path, 
     command = lambda argv: zoo_main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *argv])  # noqa: E731
     assert one_line_error(capsys, command, ["--eval-episodes", "0"]) == "argument --eval-episodes: 0: give 1 or more"
     assert not (tmp_path / "mtsac_mt").exists()
+
+
+def test_enjoy_without_a_display_says_to_add_no_render(tmp_path, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    with pytest.raises(SystemExit) as exit_info:
+        zoo_main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "-n", "5"])
+    assert exit_info.value.code == (
+        "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
+        "sb3-mtte record_video."
+    )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+import sys
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -112,6 +113,11 @@ def enjoy(argv: Sequence[str]) -> None:
     problem = device_error("--device", flag_value(argv, "--device"))
     if problem:
         raise SystemExit(problem)
+    if not has_flag(argv, "--no-render") and sys.platform == "linux" and not os.environ.get("DISPLAY"):
+        raise SystemExit(
+            "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
+            "sb3-mtte record_video."
+        )
     steps = flag_value(argv, "-n", "--n-timesteps")
     if steps is not None and not (steps.isdigit() and int(steps) >= 1):
         raise SystemExit(f"-n {steps}: give 1 or more vector steps (each steps every task once).")
@@ -197,10 +203,13 @@ def record_video(argv: Sequence[str]) -> list[Path]:
         ("-n", args.n_timesteps),
         ("--width", args.width),
         ("--height", args.height),
+        ("--fps", args.fps),
     )
     too_few = [f"{flag} {n}" for flag, n in counts if n is not None and n < 1]
     if too_few:
-        raise SystemExit(f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video, pixels).")
+        raise SystemExit(
+            f"{' and '.join(too_few)}: give at least 1 (episodes per task, steps per video, pixels, frames per second)."
+        )
     register_algos()
     name_prefix, model_path, log_path = locate_model(args)
     info = run_info.read_run_info(log_path) or {}
