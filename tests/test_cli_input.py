@@ -214,19 +214,3 @@ def test_enjoy_refuses_no_step_before_loading_the_model(tmp_path, steps):
         zoo_main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "--no-render", "-n", steps])
     assert exit_info.value.code == f"-n {steps}: give 1 or more vector steps (each steps every task once)."
 
-
-def test_train_refuses_no_evaluation_episode_before_building_the_envs(tmp_path, capsys):
-    command = lambda argv: zoo_main(["train", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), *argv])  # noqa: E731
-    assert one_line_error(capsys, command, ["--eval-episodes", "0"]) == "argument --eval-episodes: 0: give 1 or more"
-    assert not (tmp_path / "mtsac_mt").exists()
-
-
-def test_enjoy_without_a_display_says_to_add_no_render(tmp_path, monkeypatch):
-    monkeypatch.delenv("DISPLAY", raising=False)
-    monkeypatch.setattr(sys, "platform", "linux")
-    with pytest.raises(SystemExit) as exit_info:
-        zoo_main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "-n", "5"])
-    assert exit_info.value.code == (
-        "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
-        "sb3-mtte record_video."
-    )

@@ -151,7 +151,8 @@ def toy_model_zip(tmp_path_factory):
     from sb3_mtte import MTSAC, make_mt_env
 
     path = tmp_path_factory.mktemp("model") / "toy.zip"
-    MTSAC("MlpPolicy", make_mt_env("toy-conflict"), learning_starts=10, buffer_size=100, seed=0).save(path)
+    model = MTSAC("MlpPolicy", make_mt_env("toy-conflict"), learning_starts=10, buffer_size=100, batch_size=16, seed=0)
+    model.save(path)
     return path
 
 
@@ -299,9 +300,9 @@ def test_record_of_a_finished_run(tmp_path):
     (path,) = records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     record = json.loads(path.read_text())
     info = read_run_info(run)
-    assert path == tmp_path / "records" / ENV / f"mtsacte_seed{info['seed']}.json"
+    assert path == tmp_path / "records" / f"{ENV}-exact-mu" / f"mtsacte_seed{info['seed']}.json"  # mu in float64
     sample = json.loads(next((ROOT / "tests" / "data" / "records").rglob("mtsacte_seed0.json")).read_text())
-    newer_fields = {"env_protocol", "device"}  # absent from the samples: recorded before them
+    newer_fields = {"env_protocol", "device", "mu_computation"}  # absent from the samples: recorded before them
     assert set(record) == set(sample) | newer_fields and set(record["final"]) == set(sample["final"])
     # the samples predate weights_distance, harmful_fraction and coupling, which records made before them lack
     newer = {"weights_distance", "harmful_fraction", "coupling"}

@@ -189,7 +189,7 @@ def test_negative_transfer_log_is_written_by_its_callback(toy_env, tmp_path, mon
     path = tmp_path / "negative_transfer.jsonl"
     records = [json.loads(line) for line in path.read_text().splitlines()]
     assert [r["timesteps"] for r in records] == calls and len(calls) > 1 and not model.negative_transfer_records
-    keys = {"timesteps", "mu", "selected", "weights", "transfer_matrix", "task_probe_accuracy"}
+    keys = {"timesteps", "mu", "selected", "weights", "transfer_matrix", "transfer_matrix_dtype", "task_probe_accuracy"}
     assert set(records[0]) == keys | {"task_probe_accuracy_of_mean", "z_std"}
     original_update(8)
     assert len(path.read_text().splitlines()) == len(records) and len(model.negative_transfer_records) == 1

@@ -309,7 +309,7 @@ def test_best_model_is_the_latest_of_equal_evaluations(tmp_path, monkeypatch):
         return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
 
     monkeypatch.setattr(evaluation, "evaluate_success", no_success)
-    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, seed=0)
+    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, batch_size=32, seed=0)
     callback = ZooEvalCallback(make_mt_env(ENV), eval_freq=25, best_model_save_path=tmp_path)
     model.learn(300, callback=callback)
     assert callback.evaluations_timesteps == [100, 200, 300]
@@ -331,7 +331,7 @@ def test_the_last_evaluation_and_best_model_are_one_update_behind_the_final_mode
         return evaluation.SuccessResult(get_task_names(env), np.zeros(4), episodes_per_task=episodes_per_task)
 
     monkeypatch.setattr(evaluation, "evaluate_success", no_success)
-    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, seed=0)
+    model = MTSAC("MlpPolicy", make_mt_env(ENV), learning_starts=20, buffer_size=200, batch_size=32, seed=0)
     model.learn(300, callback=ZooEvalCallback(make_mt_env(ENV), eval_freq=25, best_model_save_path=tmp_path))
     assert seen[-1] == (300, model._n_updates - model.gradient_steps) and model.gradient_steps == 1
     assert MTSAC.load(tmp_path / "best_model.zip")._n_updates == model._n_updates - 1

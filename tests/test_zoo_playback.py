@@ -4,6 +4,7 @@ one line naming the fix for a missing run, model or bad option."""
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -213,8 +214,16 @@ def test_a_video_is_written_under_a_temporary_name_and_renamed_when_complete(tmp
     assert sorted(path.name for path in tmp_path.iterdir()) == ["whole.mp4"]
 
 
-def test_a_truncated_model_ends_enjoy_and_record_video_with_one_line(tmp_path):
+def test_a_truncated_model_ends_enjoy_and_record_video_with_one_line(tmp_path, monkeypatch):
     run = tiny_train(tmp_path, "mtsac_mt", steps=200)
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.setattr(sys, "platform", "linux")
+    with pytest.raises(SystemExit) as exit_info:  # a machine without a display, and no --no-render
+        main(["enjoy", "--algo", "mtsac_mt", "--env", ENV, "-f", str(tmp_path), "-n", "5"])
+    assert exit_info.value.code == (
+        "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
+        "sb3-mtte record_video."
+    )
     model = run / f"{ENV}.zip"
     model.write_bytes(model.read_bytes()[: model.stat().st_size // 2])
     for command in (["enjoy", "--no-render", "-n", "5"], ["record_video", "-n", "5"]):

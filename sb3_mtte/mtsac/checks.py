@@ -294,5 +294,7 @@ def check_arguments(algorithm: type, arguments: Mapping[str, Any], n_tasks: int 
                 spec.task_check(arguments[name], n_tasks)
     if n_tasks is not None:
         defaults = inspect.signature(algorithm.__init__).parameters
-        sizes = [arguments.get(name, defaults[name].default) for name in ("buffer_size", "batch_size")]
-        check_buffer_holds_a_batch(*sizes, n_tasks)
+        names = ("buffer_size", "batch_size")
+        sizes = [arguments.get(name, getattr(defaults.get(name), "default", None)) for name in names]
+        if all(isinstance(size, int) for size in sizes):
+            check_buffer_holds_a_batch(*sizes, n_tasks)

@@ -53,7 +53,7 @@ MTSACTE_ARGUMENTS: dict[str, ArgumentSpec] = {
         lambda value: value == "per_task",
     ),
     "policy_kwargs": ArgumentSpec(
-        f"{POLICY_KWARGS_RULE}; it must not hold rep_learning_rate, an argument of MTSACTE as in "
+        f"{POLICY_KWARGS_RULE}, and without rep_learning_rate: rep_learning_rate is an argument of MTSACTE, as in "
         "MTSACTE(..., rep_learning_rate=1e-3)",
         (Mapping, NONE),
         lambda value: policy_kwargs_in_range(value) and (value is None or "rep_learning_rate" not in value),

@@ -113,11 +113,6 @@ def enjoy(argv: Sequence[str]) -> None:
     problem = device_error("--device", flag_value(argv, "--device"))
     if problem:
         raise SystemExit(problem)
-    if not has_flag(argv, "--no-render") and sys.platform == "linux" and not os.environ.get("DISPLAY"):
-        raise SystemExit(
-            "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
-            "sb3-mtte record_video."
-        )
     steps = flag_value(argv, "-n", "--n-timesteps")
     if steps is not None and not (steps.isdigit() and int(steps) >= 1):
         raise SystemExit(f"-n {steps}: give 1 or more vector steps (each steps every task once).")
@@ -131,6 +126,11 @@ def enjoy(argv: Sequence[str]) -> None:
         argv += ["--n-envs", str(n_tasks)]
     args = _model_parser("enjoy").parse_known_args(argv)[0]
     _, _, log_path = locate_model(args)
+    if not has_flag(argv, "--no-render") and sys.platform == "linux" and not os.environ.get("DISPLAY"):
+        raise SystemExit(
+            "enjoy renders in a window and this machine has no display: add --no-render, or write videos with "
+            "sb3-mtte record_video."
+        )
     argv += ["--exp-id", str(args.exp_id)]  # resolved, so that rl-zoo's enjoy does not report it a second time
     info = run_info.read_run_info(log_path) or {}
     factory = MultiTaskVecEnvFactory(n_tasks, seed=int(info.get("benchmark_seed", 0)), wrapper=EpisodeReporter)

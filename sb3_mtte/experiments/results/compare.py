@@ -334,7 +334,7 @@ def main(argv: Sequence[str] | None = None) -> str:
         parser.error(problem)
     cmp = _comparison(args)
     runs = load_runs(args.sources)
-    bench_runs = [run for run in runs if args.benchmark in group_runs([run])]
+    bench_runs = [run for members in group_runs(runs).get(args.benchmark, {}).values() for run in members]
     runs = leave_out_unfinished(bench_runs, args.include_unfinished, scope="the comparison")
     runs = leave_out_unevaluated(runs, scope="the comparison")
     labels = group_runs(runs).get(args.benchmark, {})

@@ -226,16 +226,20 @@ def group_runs(runs: Sequence[Run]) -> dict[str, dict[str, list[Run]]]:
     """benchmark (:func:`results_benchmark`) -> algorithm label -> runs (its seeds).
 
     The runs of an algorithm without mu (SAC-MT, say) also stand in the exact-mu group of their benchmark
-    (:data:`EXACT_MU_SUFFIX`): how mu is counted does not touch them.
+    (:data:`EXACT_MU_SUFFIX`): how mu is counted does not touch them. A benchmark whose group would then hold only
+    such runs is drawn in its exact-mu group alone.
     """
     groups: dict[str, dict[str, list[Run]]] = {}
     for run in runs:
         groups.setdefault(run_results_benchmark(run), {}).setdefault(run.label, []).append(run)
     for bench in [bench for bench in groups if EXACT_MU_SUFFIX in bench]:
-        for label, members in groups.get(bench.replace(EXACT_MU_SUFFIX, ""), {}).items():
+        base = bench.replace(EXACT_MU_SUFFIX, "")
+        for label, members in groups.get(base, {}).items():
             without_mu = [run for run in members if run.mu_computation is None]
             if without_mu and label not in groups[bench]:
                 groups[bench][label] = without_mu
+        if all(run.mu_computation is None for members in groups.get(base, {}).values() for run in members):
+            groups.pop(base, None)
     return groups
 
 

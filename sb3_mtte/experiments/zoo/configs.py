@@ -126,7 +126,7 @@ def missing_entries_message(algo: str, env_ids: list[str], conf_flag: str = "-co
     missing = [env_id for env_id in env_ids if entries is not None and env_id not in entries]
     if not missing:
         return None
-    hints = [hint for env_id in missing if (hint := did_you_mean(env_id, entries or {}))]
+    hints = [f"did you mean {key}?" for env_id in missing for key in entries or {} if key.lower() == env_id.lower()]
     return (
         f"{algo} has no hyperparameters for {' '.join(missing)}{': ' + ' '.join(hints) if hints else ''} (its "
         f"entries: {' '.join(entries or {})}): pass {conf_flag} <file>.yml that has an entry for "

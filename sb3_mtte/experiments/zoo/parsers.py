@@ -39,14 +39,6 @@ def non_negative_int(text: str) -> int:
     return value
 
 
-def positive_int(text: str) -> int:
-    """An option's int of 1 or more (episodes, steps)."""
-    value = non_negative_int(text)
-    if value < 1:
-        raise argparse.ArgumentTypeError("0: give 1 or more")
-    return value
-
-
 def threads(text: str) -> int:
     """rl-zoo's ``--num-threads``: a positive int, or -1 for PyTorch's default."""
     try:
@@ -151,8 +143,6 @@ class ZooParser(CommandParser):
             kwargs["type"] = threads
         if "--seed" in names:
             kwargs["type"] = seed
-        if "--eval-episodes" in names:
-            kwargs["type"] = positive_int
         if kwargs.get("action") is StoreDict:
             kwargs["action"] = CheckedStoreDict
         return super().add_argument(*names, **kwargs)
