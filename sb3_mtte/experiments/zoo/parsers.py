@@ -28,12 +28,16 @@ PROGRESS_HELP = "display a progress bar with tqdm and rich (on by default: --no-
 TRAIN_STEPS_HELP = "env steps over all tasks (enjoy's -n counts vector steps, one step of every task)"
 
 
-def non_negative_int(text: str) -> int:
-    """An option's int of 0 or more (a run folder's id, a count of files kept)."""
+def _int(text: str) -> int:
     try:
-        value = int(text)
+        return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+
+
+def non_negative_int(text: str) -> int:
+    """An option's int of 0 or more (a run folder's id, a count of files kept)."""
+    value = _int(text)
     if value < 0:
         raise argparse.ArgumentTypeError(f"{value} is negative: give 0 or more")
     return value
@@ -41,10 +45,7 @@ def non_negative_int(text: str) -> int:
 
 def threads(text: str) -> int:
     """rl-zoo's ``--num-threads``: a positive int, or -1 for PyTorch's default."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+    value = _int(text)
     if value < 1 and value != -1:
         raise argparse.ArgumentTypeError(f"{value} threads: give 1 or more, or -1 for PyTorch's default")
     return value
@@ -52,10 +53,7 @@ def threads(text: str) -> int:
 
 def seed(text: str) -> int:
     """rl-zoo's ``--seed``: an int from 0 to 2**32 - 1, or -1 for a random one."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not an int") from None
+    value = _int(text)
     if not -1 <= value < 2**32:
         raise argparse.ArgumentTypeError(f"{value} is out of range: give 0 to 2**32 - 1, or -1 for a random seed")
     return value
