@@ -266,3 +266,17 @@ def test_the_transfer_matrix_says_which_seeds_it_draws(tmp_path, kept_figures, s
     plot.main([str(tmp_path / "runs"), "--out", str(tmp_path / "figures"), "--reps", "10"])
     title = " ".join(kept_figures["nt_matrix_toy-conflict_SAC-MT.png"].get_suptitle().split())
     assert title.startswith(f"toy-conflict, SAC-MT, {said}: J_i(theta^k) - J_i(theta)")
+
+
+def test_record_on_a_stopped_run_names_resume_and_its_last_checkpoint(tmp_path, capsys):
+    run = write_run(tmp_path / "runs", 0, [0.0], None, finished=False, timesteps=400)
+    for steps in (200, 400):
+        (run / f"rl_model_{steps}_steps.zip").write_bytes(b"")
+    with pytest.raises(SystemExit):
+        records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
+    skipped = [line for line in capsys.readouterr().err.splitlines() if line.startswith("Skipped")]
+    assert skipped == [
+        f"Skipped {run} (toy-conflict, SAC-MT, seed 0): no final evaluation (success.json); it has no final model: "
+        f"finish it with sb3-mtte train --resume {run}, or evaluate its last checkpoint: sb3-mtte evaluate "
+        f"{run / 'rl_model_400_steps.zip'} --episodes 50"
+    ]

@@ -217,9 +217,16 @@ def _evaluated(run: Run) -> bool:
     if run.final is not None:
         return True
     model = run.path / str(run.info.get("final_model") or f"{run.benchmark}.zip")
+    if model.is_file():
+        fix = f"evaluate it first: {command_prog('evaluate')} {model} --episodes 50"
+    else:  # stopped or killed: no final model
+        checkpoints = sorted(run.path.glob("rl_model_*_steps.zip"), key=lambda path: int(path.stem.split("_")[-2]))
+        fix = f"it has no final model: finish it with {command_prog('train')} --resume {run.path}"
+        if checkpoints:
+            fix += f", or evaluate its last checkpoint: {command_prog('evaluate')} {checkpoints[-1]} --episodes 50"
     print(
-        f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation "
-        f"(success.json); evaluate it first: {command_prog('evaluate')} {model} --episodes 50",
+        f"Skipped {run.path} ({run.benchmark}, {run.label}, seed {run.seed}): no final evaluation (success.json); "
+        f"{fix}",
         file=sys.stderr,
     )
     return False
