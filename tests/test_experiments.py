@@ -226,6 +226,7 @@ def test_record_names_each_run_it_skips(tmp_path, capsys):
     run.mkdir(parents=True)
     info = {"algo": "mtsac_mt", "label": "SAC-MT", "env_id": ENV, "seed": 4, "task_names": ["a", "b"], "n_tasks": 2}
     (run / "run_info.json").write_text(json.dumps(info))
+    (run / f"{ENV}.zip").write_bytes(b"")  # its final model, not evaluated yet
     with pytest.raises(SystemExit):
         records.main([str(tmp_path / "runs"), "--out", str(tmp_path / "records")])
     assert capsys.readouterr().err.splitlines()[0] == (
